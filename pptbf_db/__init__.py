@@ -1,0 +1,1 @@
+"""PPTBF generator, descriptors and the PPTBF feature database."""

@@ -1,0 +1,1 @@
+"""The batch service: manifests, SQLite store, Ray scheduling and the CLI."""
