@@ -477,8 +477,10 @@ def evaluate(
             from .height import height_to_normal
 
             h = out[m["from_height"]][..., 0]
-            out[m["name"]] = height_to_normal(h, strength=float(m.get("strength", 1.0)) / ctx.px_scale,
-                                              convention=m.get("convention", "opengl"))
+            # scale zooms the relief with the pattern: slopes stay the same, so strength grows with px_scale
+            out[m["name"]] = height_to_normal(h, strength=float(m.get("strength", 1.0)) * ctx.px_scale,
+                                              convention=m.get("convention", "opengl"),
+                                              tilt=tuple(m.get("tilt", (0.0, 0.0))))
     if wanted is not None:
         out = {k: v for k, v in out.items() if k in wanted}
     return out

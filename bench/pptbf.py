@@ -1,0 +1,58 @@
+"""Benchmark PPTBF evaluation: numpy at 128/256/512 and torch (CPU) at 256, per tiling family.
+
+Run: python bench/pptbf.py [--n 3] [--seed 0] [--sizes 128 256 512] [--torch-size 256] [--device cpu]
+Prints one row per family with the median time (s) over n random database-like parameter vectors
+(sample_params(ref_width=128), rendered with ref_width=128 so the pattern scale is the database's).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from pptbf_db import pptbf as pp
+
+
+def _time(fn) -> float:
+    """Wall time of one call."""
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=3, help="parameter vectors per family")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
+    ap.add_argument("--torch-size", type=int, default=256, help="0 to skip torch")
+    ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    cols = [f"numpy {s}" for s in args.sizes] + ([f"torch {args.torch_size}"] if args.torch_size else [])
+    if args.torch_size and args.device != "cpu":
+        import torch
+
+        pp.evaluate_torch(torch.tensor(pp.sample_params(rng, 1)[0]), 64, device=args.device)  # warm-up
+    print(f"{'family':<10} " + " ".join(f"{c:>11}" for c in cols) + "   (median seconds)")
+    for fam, types in pp.TILING_FAMILIES.items():
+        params = pp.sample_params(rng, args.n, ref_width=128)
+        params[:, 1] = rng.choice(types, size=args.n)
+        row = []
+        for s in args.sizes:
+            row.append(np.median([_time(lambda p=p: pp.evaluate(p, s, ref_width=128)) for p in params]))
+        if args.torch_size:
+            import torch
+
+            def run(p, dev=args.device):
+                v = pp.evaluate_torch(torch.tensor(p), args.torch_size, ref_width=128, device=dev)
+                if v.is_cuda:
+                    torch.cuda.synchronize()
+
+            row.append(np.median([_time(lambda p=p: run(p)) for p in params]))
+        print(f"{fam:<10} " + " ".join(f"{t:>11.3f}" for t in row))
+
+
+if __name__ == "__main__":
+    main()

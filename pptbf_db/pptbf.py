@@ -1,0 +1,1138 @@
+"""PPTBF (Point Process Texture Basis Functions, Guehl et al. 2020): parameter space and vectorised numpy evaluation.
+
+Re-derived from /work/shared/SPEC-pptbf.md (no reference code copied); the numeric tables are in tables.py.
+The evaluation is split in two parts so that the torch version (pptbf_torch.py) can share the discrete work:
+
+* the *structure* (numpy, float64, not differentiable): domain coordinates -> tiles -> (relaxed) point sets ->
+  per-point random draws -> per-pixel ranking of the 18 nearest points -> cellular-window border radii (march);
+* the *shading* (windows, cellular window, features, mixture), written once in numpy here and once in torch.
+
+Deviations from the reference (all documented in the spec or noted here):
+* y0 = j / W (not j / H): non-square outputs extend the pattern instead of stretching it (spec §5.11).
+* each kernel takes 6 PRNG draws (v, pr, lx, ly, th, s), as the shader does; the spec's "7" is a miscount.
+* hashes truncate with floor (identical to the reference's int casts for the positive coordinates it produces).
+* with `ref_width`/`pixel_scale` the pattern is defined at a reference width (see `evaluate`).
+* the cellular border march uses the 16 candidates nearest to p0 (its cell's neighbours are among them; measured:
+  0.05% of radii differ from using all 36) and runs in float32 on coordinates relative to p0 (the march resolution
+  is 0.2/64 anyway); queries are deduplicated over (candidate set, p0, sector), and the third radius (sector ka+2
+  or ka-1) is only searched on the side the pixel needs.
+* exact ties in the ranking go to the lower candidate index (as the reference's strict minimum search).
+
+Cost: see bench/pptbf.py (numpy, database-like parameters: 128 px ~0.15 s, 256 px ~0.6 s, 512 px ~1.7-3.5 s;
+the border march (~45%), the kernels (~20%) and the ranking (~15%) dominate).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pptbf_db import tables
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Parameter space
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One entry of the 29-vector: name, kind ("cont" | "disc") and range (inclusive)."""
+
+    name: str
+    kind: str
+    lo: float
+    hi: float
+
+
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("threshold", "cont", 0.0, 1.0),
+    ParamSpec("tiling", "disc", 0, 17),
+    ParamSpec("jitter", "cont", 0.0, 1.0),
+    ParamSpec("resolution", "cont", 1.0, 1000.0),
+    ParamSpec("rotation", "cont", 0.0, 2.0),
+    ParamSpec("aspect_ratio", "cont", 0.01, 10.0),
+    ParamSpec("distortion_base", "cont", 0.0, 0.25),
+    ParamSpec("distortion_amplitude", "cont", 0.0, 4.0),
+    ParamSpec("distortion_frequency", "cont", 0.0, 2.0),
+    ParamSpec("window_shape", "disc", 0, 3),
+    ParamSpec("window_arity", "cont", 2.0, 10.0),
+    ParamSpec("window_larp", "cont", 0.0, 1.0),
+    ParamSpec("window_norm", "cont", 1.0, 3.0),
+    ParamSpec("window_smoothness", "cont", 0.0, 2.0),
+    ParamSpec("window_blend", "cont", 0.0, 1.0),
+    ParamSpec("window_sigma", "cont", 0.01, 4.0),
+    ParamSpec("feature_mixture", "disc", 0, 4),
+    ParamSpec("feature_norm", "cont", 1.0, 3.0),
+    ParamSpec("feature_correlation", "cont", 0.0, 1.0),
+    ParamSpec("feature_aniso", "cont", 0.0, 5.0),
+    ParamSpec("feature_kernel_min", "disc", 0, 16),
+    ParamSpec("feature_kernel_max", "disc", 0, 16),
+    ParamSpec("feature_sigcos", "cont", 0.0, 10.0),
+    ParamSpec("feature_sigcosvar", "cont", 0.0, 1.0),
+    ParamSpec("feature_frequency", "disc", 0, 16),
+    ParamSpec("feature_phase_shift", "cont", 0.0, 1.0),
+    ParamSpec("feature_thickness", "cont", 0.001, 1.0),
+    ParamSpec("feature_curvature", "cont", 0.0, 1.0),
+    ParamSpec("feature_orientation", "cont", 0.0, 0.5),
+)
+N_PARAMS = len(PARAM_SPECS)
+PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
+PARAM_INDEX: dict[str, int] = {n: i for i, n in enumerate(PARAM_NAMES)}
+CONTINUOUS_IDX = np.array([i for i, s in enumerate(PARAM_SPECS) if s.kind == "cont"], dtype=np.int64)
+DISCRETE_IDX = np.array([i for i, s in enumerate(PARAM_SPECS) if s.kind == "disc"], dtype=np.int64)
+_LO = np.array([s.lo for s in PARAM_SPECS], dtype=np.float64)
+_HI = np.array([s.hi for s in PARAM_SPECS], dtype=np.float64)
+
+#: thresholds used by the reference database (folder tokens 0 / 1 / other)
+DATABASE_THRESHOLDS = (0.2, 0.5, 0.8)
+#: sampling ranges narrower than the valid ranges where the full range is degenerate at database sizes
+SAMPLE_RANGES: dict[str, tuple[float, float]] = {
+    "aspect_ratio": (0.25, 4.0),          # log-uniform; 0.01..10 gives 1-pixel stripes
+    "distortion_base": (0.0, 0.05),       # 0.25 image widths with gain 4 is pure noise
+    "distortion_amplitude": (0.0, 1.0),
+    "distortion_frequency": (0.0, 1.0),   # documented range of the file format
+    "feature_kernel_min": (0, 8),         # file-format range, keeps database renders cheap
+    "feature_kernel_max": (0, 8),
+    "feature_sigcos": (0.0, 6.0),
+    "feature_frequency": (0, 8),
+}
+
+
+def _as_params(params) -> np.ndarray:
+    """Validate a parameter vector: 29 finite numbers (raises ValueError naming the problem)."""
+    p = np.asarray(params, dtype=np.float64).reshape(-1)
+    if p.size != N_PARAMS:
+        raise ValueError(f"PPTBF parameter vector must have {N_PARAMS} entries ({', '.join(PARAM_NAMES)}), "
+                         f"got {p.size}")
+    bad = ~np.isfinite(p)
+    if bad.any():
+        names = [PARAM_NAMES[i] for i in np.flatnonzero(bad)]
+        raise ValueError(f"PPTBF parameters not finite: {names}")
+    return p
+
+
+def clip_params(params) -> np.ndarray:
+    """Clamp into the ranges, truncate discrete entries to ints and order kernel min <= max (1-D or (n, 29))."""
+    p = np.array(params, dtype=np.float64)
+    single = p.ndim == 1
+    p = np.atleast_2d(p)
+    if p.shape[-1] != N_PARAMS:
+        raise ValueError(f"PPTBF parameter vectors must have {N_PARAMS} entries, got {p.shape[-1]}")
+    p = np.clip(np.nan_to_num(p, nan=0.0), _LO, _HI)
+    p[:, DISCRETE_IDX] = np.floor(p[:, DISCRETE_IDX])
+    i0, i1 = PARAM_INDEX["feature_kernel_min"], PARAM_INDEX["feature_kernel_max"]
+    lo, hi = np.minimum(p[:, i0], p[:, i1]), np.maximum(p[:, i0], p[:, i1])
+    p[:, i0], p[:, i1] = lo, hi
+    return p[0] if single else p
+
+
+def sample_params(rng: np.random.Generator, n: int, *, ref_width: int = 128,
+                  thresholds=DATABASE_THRESHOLDS) -> np.ndarray:
+    """Draw n parameter vectors covering the space, for a database rendered at `ref_width` pixels.
+
+    Uniform per parameter (ranges of PARAM_SPECS, narrowed by SAMPLE_RANGES where degenerate), threshold from
+    `thresholds`, resolution (period in pixels) log-uniform in [ref_width/16, ref_width/2], and the flat
+    combination mixture 0 + window shape 0 replaced by shapes 1..3.
+    """
+    out = np.empty((n, N_PARAMS), dtype=np.float64)
+    for i, s in enumerate(PARAM_SPECS):
+        lo, hi = SAMPLE_RANGES.get(s.name, (s.lo, s.hi))
+        if s.kind == "disc":
+            out[:, i] = rng.integers(int(lo), int(hi) + 1, size=n)
+        elif s.name == "aspect_ratio":
+            out[:, i] = np.exp(rng.uniform(math.log(lo), math.log(hi), size=n))
+        else:
+            out[:, i] = rng.uniform(lo, hi, size=n)
+    out[:, 0] = rng.choice(np.asarray(thresholds, dtype=np.float64), size=n)
+    out[:, 3] = np.floor(np.exp(rng.uniform(math.log(ref_width / 16.0), math.log(ref_width / 2.0), size=n)))
+    flat = (out[:, PARAM_INDEX["feature_mixture"]] == 0) & (out[:, PARAM_INDEX["window_shape"]] == 0)
+    out[flat, PARAM_INDEX["window_shape"]] = rng.integers(1, 4, size=int(flat.sum()))
+    return clip_params(out)
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """The parameter vector converted to the quantities the evaluation uses (spec §1 conversions)."""
+
+    threshold: float
+    tiling: int
+    jitter: float
+    res: int
+    alpha: float
+    aspect: float
+    dist_a: float
+    dist_g: float
+    dist_f: float
+    shape: int
+    n_sectors: int
+    larp: float
+    wnorm: float
+    smooth: float
+    beta: float
+    sigma_w: float
+    mixture: int
+    fnorm: float
+    corr: float
+    aniso: float
+    npmin: int
+    npmax: int
+    sigcos: float
+    sigcosvar: float
+    freq: int
+    phi: float
+    thick: float
+    curv: float
+    theta_max: float
+
+    @property
+    def delta(self) -> float:
+        """Angular sector width of the cellular window."""
+        return 2.0 * math.pi / self.n_sectors
+
+    @property
+    def footprint(self) -> float:
+        """Window footprint F (1.5 for shape 0, 1 otherwise; x0.4 for the small tiles of types >= 10)."""
+        f = 1.5 if self.shape == 0 else 1.0
+        return f * 0.4 if self.tiling >= 10 else f
+
+    @property
+    def kmax(self) -> int:
+        """Largest possible kernel count per point."""
+        return max(self.npmin, self.npmax, 0)
+
+
+def decode(params) -> Decoded:
+    """Convert a 29-vector (validated; discrete entries truncated like the C host) into `Decoded`."""
+    p = _as_params(params)
+
+    def disc(name: str, lo: int, hi: int) -> int:
+        v = int(math.trunc(p[PARAM_INDEX[name]]))
+        if not lo <= v <= hi:
+            raise ValueError(f"PPTBF parameter '{name}' (index {PARAM_INDEX[name]}) = {v} outside {lo}..{hi}")
+        return v
+
+    res = max(1, int(math.trunc(p[3])))
+    aspect = float(p[5])
+    if abs(aspect) < 1e-6:
+        raise ValueError("PPTBF parameter 'aspect_ratio' (index 5) must not be 0")
+    return Decoded(
+        threshold=float(p[0]), tiling=disc("tiling", 0, 17), jitter=float(p[2]), res=res,
+        alpha=math.pi * float(p[4]), aspect=aspect, dist_a=float(p[6]), dist_g=float(p[7]), dist_f=float(p[8]),
+        shape=disc("window_shape", 0, 3), n_sectors=2 ** int(math.floor(max(float(p[10]), 0.0) + 0.5)),
+        larp=float(p[11]), wnorm=float(p[12]), smooth=float(p[13]), beta=float(p[14]), sigma_w=float(p[15]),
+        mixture=disc("feature_mixture", 0, 5), fnorm=float(p[17]), corr=float(p[18]), aniso=float(p[19]),
+        npmin=disc("feature_kernel_min", 0, 20), npmax=disc("feature_kernel_max", 0, 20),
+        sigcos=float(p[22]), sigcosvar=float(p[23]), freq=int(math.trunc(p[24])),
+        phi=0.5 * math.pi * float(p[25]), thick=float(p[26]), curv=float(p[27]), theta_max=math.pi * float(p[28]))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Hash PRNG and value noise (spec §2.1)
+# --------------------------------------------------------------------------------------------------------------
+
+PERM = np.asarray(tables.PERM, dtype=np.int64)
+NOISE = np.asarray(tables.NOISE, dtype=np.float64)
+_MULT = 3039177861
+MAX_DRAWS = 6 * 20 + 4
+MPOW = np.array([pow(_MULT, n, 2 ** 32) for n in range(MAX_DRAWS + 1)], dtype=np.uint64)
+_MASK32 = np.uint64(0xFFFFFFFF)
+
+
+def hash_seed(x, y) -> np.ndarray:
+    """Reference seeding(x, y, 0): two permutation chains combined into a < 2^25 integer seed."""
+    x = np.asarray(x, dtype=np.int64)
+    y = np.asarray(y, dtype=np.int64)
+    p0 = PERM[0]
+    a = PERM[np.mod(x + PERM[np.mod(y + p0, 1024)], 1024)]
+    b = PERM[np.mod(3 * x + PERM[np.mod(4 * y + p0, 1024)], 1024)]
+    return a + 32768 * b
+
+
+def draw(seed, n) -> np.ndarray:
+    """The n-th (1-based) draw U in [-1, 1) after seeding: seed * M^n mod 2^32 (random access)."""
+    s = (np.asarray(seed, dtype=np.int64).astype(np.uint64) * MPOW[np.asarray(n)]) & _MASK32
+    return s.astype(np.float64) * (2.0 / 4294967296.0) - 1.0
+
+
+def _lattice(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Value-noise lattice value at integer (i, j)."""
+    return NOISE[np.mod(PERM[np.mod(i, 1024)] + 3 * PERM[np.mod(j, 1024)] + 5 * PERM[0], 1024)]
+
+
+def value_noise(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear value noise with smoothstep weights, in [-1, 1]."""
+    fx, fy = np.floor(x), np.floor(y)
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    tx, ty = x - fx, y - fy
+    sx, sy = tx * tx * (3.0 - 2.0 * tx), ty * ty * (3.0 - 2.0 * ty)
+    v0 = _lattice(ix, iy) + (_lattice(ix, iy + 1) - _lattice(ix, iy)) * sy
+    v1 = _lattice(ix + 1, iy) + (_lattice(ix + 1, iy + 1) - _lattice(ix + 1, iy)) * sy
+    return v0 + (v1 - v0) * sx
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Coordinates (spec §2.2)
+# --------------------------------------------------------------------------------------------------------------
+
+OCTAVE_FACTORS = (0.5, 1.0, 2.0, 4.0)
+
+
+def base_coords(width: int, height: int, shift=(0.0, 0.0), pixel_scale: float = 1.0,
+                ref_width: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(x0 (1, W), y0 (H, 1)) of the pixels in reference image widths: i / (ref_width * pixel_scale) + shift."""
+    unit = float(ref_width or width) * float(pixel_scale)
+    x0 = np.arange(width, dtype=np.float64) / unit + float(shift[0])
+    y0 = np.arange(height, dtype=np.float64) / unit + float(shift[1])
+    return x0[None, :], y0[:, None]
+
+
+def domain_coords(x0: np.ndarray, y0: np.ndarray, d: Decoded, zoom: float) -> tuple[np.ndarray, np.ndarray]:
+    """Turbulence then rotation / aspect / zoom: pixel coordinates -> domain units (1 unit = 1 period).
+
+    x0, y0 broadcast against each other ((1, W) and (H, 1) make the noise lattice lookups separable).
+    """
+    x1, y1 = x0, y0
+    if d.dist_a != 0.0:
+        fz = d.dist_f * zoom
+        for o, m in enumerate(OCTAVE_FACTORS):
+            amp = d.dist_a * d.dist_g ** o
+            if amp == 0.0:
+                continue
+            x1 = x1 + amp * value_noise(fz * m * x0 + 2.0, fz * m * y0)
+            y1 = y1 + amp * value_noise(fz * m * x0, fz * m * y0 + 5.0)
+    ca, sa = math.cos(d.alpha), math.sin(d.alpha)
+    x = 100.0 + zoom * (x1 * ca - y1 * sa) / d.aspect
+    y = 100.0 + zoom * (x1 * sa + y1 * ca)
+    return np.broadcast_arrays(x, y)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Tilings (spec §2.3)
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TilingType:
+    """One of the 18 point-process types: base tiling family, subdivision probability, row shift, relaxation."""
+
+    family: str          # "pave" | "cross" | "bisquare" | "apave"
+    p_sub: float
+    rand_x: float = 0.0  # PAVE random cut amplitudes
+    rand_y: float = 0.0
+    shift: int = 1       # PAVE row shift D
+    n: int = 0           # CROSS brick length N
+    relax: int = 0
+
+
+TILING_TYPES: tuple[TilingType, ...] = (
+    TilingType("pave", 0.0), TilingType("pave", 0.5), TilingType("pave", 1.0, relax=5),
+    TilingType("pave", 0.5, relax=5), TilingType("pave", 0.0, shift=2), TilingType("pave", 0.0, shift=3),
+    TilingType("pave", 0.0, 0.8, 0.8), TilingType("pave", 0.5, 0.8, 0.8),
+    TilingType("pave", 0.0, 0.8, 0.0), TilingType("pave", 0.5, 0.8, 0.0),
+    TilingType("cross", 0.0, n=2), TilingType("cross", 0.5, n=2),
+    TilingType("cross", 0.0, n=3), TilingType("cross", 0.5, n=3),
+    TilingType("bisquare", 0.0), TilingType("bisquare", 0.5),
+    TilingType("apave", 0.0), TilingType("apave", 0.5),
+)
+TILING_NAMES = ("square", "square-split", "relaxed-split", "relaxed-random", "running-bond", "thirds-bond",
+                "ashlar", "ashlar-split", "random-bricks", "random-bricks-split", "herringbone2",
+                "herringbone2-split", "herringbone3", "herringbone3-split", "pythagorean", "pythagorean-split",
+                "apavement", "apavement-split")
+TILING_FAMILIES = {"PAVE": (0, 1, 2, 3, 4, 5, 6, 7, 8, 9), "CROSS": (10, 11, 12, 13), "BISQUARE": (14, 15),
+                   "APAVEMENT": (16, 17)}
+
+
+def _cross_table(N: int) -> np.ndarray:
+    """(4N^2, 9, 4) centre offsets and half-sizes (units) of the 9 herringbone tiles per sub-cell (qx, qy)."""
+    n2 = 2 * N
+
+    def hor(a, b):
+        return ((a + N / 2) / n2, (b + 0.5) / n2, (N / 2) / n2, 0.5 / n2)
+
+    def ver(a, b):
+        return ((a + 0.5) / n2, (b + N / 2) / n2, 0.5 / n2, (N / 2) / n2)
+
+    tab = np.zeros((n2 * n2, 9, 4))
+    for qx in range(n2):
+        for qy in range(n2):
+            tiles = []
+            if qy <= qx <= qy + N - 1 or qy - n2 <= qx <= qy + N - 1 - n2:
+                rx, ry = (qy if qy <= qx <= qy + N - 1 else qy - n2), qy
+                for t in (-1, 0, 1):
+                    tiles += [hor(rx + t, ry + t), ver(rx + t - 1, ry + t), ver(rx + t + N, ry + t + 1 - N)]
+            else:
+                rx, ry = qx, (qx + 1 if qx + 1 <= qy <= qx + N else qx + 1 - n2)
+                for t in (-1, 0, 1):
+                    tiles += [ver(rx + t, ry + t), hor(rx + t, ry + t - 1), hor(rx + t - N, ry + t + N - 1)]
+            tab[qx * n2 + qy] = tiles
+    return tab
+
+
+def _bisquare_table() -> np.ndarray:
+    """(25, 9, 4) tiles of the Pythagorean tiling (2x2 and 1x1 squares on a 1/5 grid) per sub-cell."""
+    def big(a, b):
+        return ((a + 1) / 5, (b + 1) / 5, 1 / 5, 1 / 5)
+
+    def small(a, b):
+        return ((a + 0.5) / 5, (b + 0.5) / 5, 0.5 / 5, 0.5 / 5)
+
+    e1, e2 = (2, -1), (1, 2)
+    tab = np.full((25, 9, 4), np.nan)
+    for qx in range(5):
+        for qy in range(5):
+            tiles = None
+            for i in range(3):
+                for j in range(3):
+                    bx, by = -2 + 2 * i + j, 1 - i + 2 * j
+                    if tiles is None and bx <= qx <= bx + 1 and by <= qy <= by + 1:
+                        offs = [(-e1[0], -e1[1]), (-e2[0], -e2[1]), (0, 0), e2, e1]
+                        tiles = [big(bx + ox, by + oy) for ox, oy in offs]
+                        tiles += [small(bx - 1, by), small(bx, by + 2), small(bx + 2, by + 1), small(bx + 1, by - 1)]
+            for i in range(3):
+                for j in range(2):
+                    if tiles is None and qx == 2 * i + j and qy == 2 + 2 * j - i:
+                        tiles = [small(qx, qy), small(qx - 2, qy + 1), small(qx + 1, qy + 2),
+                                 small(qx - 1, qy - 2), small(qx + 2, qy - 1)]
+                        tiles += [big(qx - 2, qy - 1), big(qx - 1, qy + 1), big(qx + 1, qy), big(qx, qy - 2)]
+            if tiles is None:
+                raise AssertionError(f"BISQUARE sub-cell ({qx}, {qy}) not covered")
+            tab[qx * 5 + qy] = tiles
+    return tab
+
+
+def _apave_region(qx: int, qy: int) -> int:
+    """APAVEMENT region code of a quarter cell (spec §2.3 table)."""
+    if 1 <= qx <= 2 and 1 <= qy <= 2:
+        return 0
+    if qy == 3 and qx <= 2:
+        return 1
+    if qx == 3:
+        return 2 + (3 - qy)
+    if qy == 0 and qx >= 1:
+        return 6
+    return 7 if qy <= 1 else 8
+
+
+def _apave_table() -> np.ndarray:
+    """(16, 9, 4) APAVEMENT tiles per quarter cell, from the reference tables (defects kept, spec §5.5)."""
+    sx, sy = np.array(tables.APAVE_SX), np.array(tables.APAVE_SY)
+    ddx, ddy = np.array(tables.APAVE_DDX), np.array(tables.APAVE_DDY)
+    tab = np.zeros((16, 9, 4))
+    for qx in range(4):
+        for qy in range(4):
+            r = _apave_region(qx, qy)
+            hx, hy = sx[r] / 4.0, sy[r] / 4.0
+            tab[qx * 4 + qy] = np.stack([ddx[r] / 4.0 + hx, ddy[r] / 4.0 + hy, hx, hy], axis=-1)
+    return tab
+
+
+_TABLES = {("cross", 2): (4, _cross_table(2)), ("cross", 3): (6, _cross_table(3)),
+           ("bisquare", 0): (5, _bisquare_table()), ("apave", 0): (4, _apave_table())}
+
+
+def _table_for(tt: TilingType) -> tuple[int, np.ndarray] | None:
+    """(sub-units per period, tile table) of a table-driven family, None for PAVE."""
+    return None if tt.family == "pave" else _TABLES[(tt.family, tt.n)]
+
+
+def cell_codes(x: np.ndarray, y: np.ndarray, tt: TilingType) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ix, iy, q): the integer data the 9 tiles of a point depend on (q = sub-cell, 0 for PAVE)."""
+    fx, fy = np.floor(x), np.floor(y)
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    tab = _table_for(tt)
+    if tab is None:
+        return ix, iy, np.zeros_like(ix)
+    n = tab[0]
+    qx = np.clip(np.floor((x - fx) * n).astype(np.int64), 0, n - 1)
+    qy = np.clip(np.floor((y - fy) * n).astype(np.int64), 0, n - 1)
+    return ix, iy, qx * n + qy
+
+
+_DI = np.array([-1, 0, 1] * 3, dtype=np.int64)
+_DJ = np.repeat(np.array([-1, 0, 1], dtype=np.int64), 3)
+
+
+def tiles_from_codes(ix: np.ndarray, iy: np.ndarray, q: np.ndarray, tt: TilingType):
+    """The 9 candidate tiles (cx, cy, hx, hy), each shape ix.shape + (9,)."""
+    tab = _table_for(tt)
+    if tab is not None:
+        t = tab[1][q]
+        return ix[..., None] + t[..., 0], iy[..., None] + t[..., 1], t[..., 2].copy(), t[..., 3].copy()
+    a = ix[..., None] + _DI
+    b = iy[..., None] + _DJ
+    o = np.mod(b, tt.shift) / tt.shift
+    zero = np.zeros(a.shape)
+    left = 0.5 * tt.rand_x * draw(hash_seed(a + 5, b + 10), 1) if tt.rand_x else zero
+    right = 0.5 * tt.rand_x * draw(hash_seed(a + 6, b + 10), 1) if tt.rand_x else zero
+    bottom = 0.5 * tt.rand_y * draw(hash_seed(np.full_like(b, 3), b + 10), 1) if tt.rand_y else zero
+    top = 0.5 * tt.rand_y * draw(hash_seed(np.full_like(b, 3), b + 11), 1) if tt.rand_y else zero
+    hx = 0.5 * (right + 1.0 - left)
+    hy = 0.5 * (top + 1.0 - bottom)
+    return a + o + left + hx, b + bottom + hy, hx, hy
+
+
+def tiles_at(x: np.ndarray, y: np.ndarray, tt: TilingType):
+    """The 9 candidate tiles of domain points (x, y)."""
+    return tiles_from_codes(*cell_codes(x, y, tt), tt)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Point sets: subdivision, jitter, relaxation (spec §2.3)
+# --------------------------------------------------------------------------------------------------------------
+
+def point_sets(cx, cy, hx, hy, p_sub: float) -> dict[str, np.ndarray]:
+    """Per tile: up to 4 (sub)cells with their un-jittered points p*; arrays of shape cx.shape + (4,)."""
+    cx, cy, hx, hy = (np.asarray(v, dtype=np.float64) for v in (cx, cy, hx, hy))
+    s = hash_seed(np.floor(15.0 * cx).astype(np.int64) + 10, np.floor(10.0 * cy).astype(np.int64) + 3)
+    q = 0.5 * draw(s, 1) + 0.5
+    dr = [None] + [draw(s, n) for n in range(1, 12)]
+    split = q < p_sub
+    s4 = split & (np.abs(hx - hy) < 0.1)
+    sx = split & ~s4 & (hx > hy + 0.1)
+    sy = split & ~s4 & ~sx & (hy > hx + 0.1)
+    shape = cx.shape + (4,)
+    out = {k: np.zeros(shape) for k in ("px", "py", "ccx", "ccy", "chx", "chy")}
+    valid = np.zeros(shape, dtype=bool)
+
+    def put(mask, slot, ccx, ccy, chx, chy, ux, uy):
+        for key, val in (("ccx", ccx), ("ccy", ccy), ("chx", chx), ("chy", chy),
+                         ("px", ccx + 0.9 * chx * ux), ("py", ccy + 0.9 * chy * uy)):
+            out[key][..., slot] = np.where(mask, val, out[key][..., slot])
+        valid[..., slot] |= mask
+
+    single = ~(s4 | sx | sy)
+    put(single, 0, cx, cy, hx, hy, dr[2], dr[3])
+    # four-way split at (cut_x, cut_y): lower-left, lower-right, upper-left, upper-right
+    ctx, cty = 0.5 + 0.18 * dr[2], 0.5 + 0.18 * dr[3]
+    x0, y0 = cx - hx, cy - hy
+    for slot, (right, upper) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+        chx = np.where(right, 1.0 - ctx, ctx) * hx
+        chy = np.where(upper, 1.0 - cty, cty) * hy
+        ccx = x0 + (2.0 * ctx * hx if right else 0.0) + chx
+        ccy = y0 + (2.0 * cty * hy if upper else 0.0) + chy
+        put(s4, slot, ccx, ccy, chx, chy, dr[4 + 2 * slot], dr[5 + 2 * slot])
+    cut = 0.4 + 0.2 * (0.5 * dr[2] + 0.5)
+    for slot in (0, 1):
+        chx = (cut if slot == 0 else 1.0 - cut) * hx
+        put(sx, slot, x0 + (2.0 * cut * hx if slot else 0.0) + chx, cy, chx, hy, dr[3 + 2 * slot], dr[4 + 2 * slot])
+        chy = (cut if slot == 0 else 1.0 - cut) * hy
+        put(sy, slot, cx, y0 + (2.0 * cut * hy if slot else 0.0) + chy, hx, chy, dr[3 + 2 * slot], dr[4 + 2 * slot])
+    out["valid"] = valid
+    return out
+
+
+def _pairwise_nearest3(px: np.ndarray, py: np.ndarray, valid: np.ndarray):
+    """For (T, n) points: indices (T, n, 3) of the 3 nearest other valid points and the offsets to them."""
+    ddx = px[:, None, :] - px[:, :, None]
+    ddy = py[:, None, :] - py[:, :, None]
+    dist = np.sqrt(ddx * ddx + ddy * ddy)
+    n = px.shape[1]
+    dist[:, np.arange(n), np.arange(n)] = np.inf
+    dist = np.where(valid[:, None, :], dist, np.inf)
+    idx = np.argsort(dist, axis=-1, kind="stable")[..., :3]
+    return (np.take_along_axis(ddx, idx, -1), np.take_along_axis(ddy, idx, -1),
+            np.take_along_axis(dist, idx, -1))
+
+
+def relaxed_sets(tcx, tcy, thx, thy, tt: TilingType) -> dict[str, np.ndarray]:
+    """Relaxed point sets of tiles (T,): the points of the 9 tiles around each, relaxed, kept inside it (T, 36)."""
+    ncx, ncy, nhx, nhy = tiles_at(tcx, tcy, tt)
+    ps = point_sets(ncx, ncy, nhx, nhy, tt.p_sub)
+    ps = {k: v.reshape(v.shape[0], -1) for k, v in ps.items()}
+    px, py, valid = ps["px"].copy(), ps["py"].copy(), ps["valid"]
+    bx, by, bdx, bdy = (v[:, None] for v in (tcx, tcy, thx, thy))
+
+    def inside(x, y):
+        return valid & (x >= bx - bdx) & (x <= bx + bdx) & (y >= by - bdy) & (y <= by + bdy)
+
+    for _ in range(tt.relax):
+        move = inside(px, py)
+        ddx, ddy, no = _pairwise_nearest3(px, py, valid)
+        no = np.where(no == 0.0, 1.0, no)
+        dirx = (ddx / (no * no)).sum(-1)
+        diry = (ddy / (no * no)).sum(-1)
+        nrm = np.sqrt(dirx * dirx + diry * diry)
+        nrm = np.where(nrm == 0.0, 1.0, nrm)
+        mx = px - dirx / nrm * 0.05
+        my = py - diry / nrm * 0.05
+        mx = np.maximum(mx, ps["ccx"] - ps["chx"] + 0.05)
+        mx = np.minimum(mx, ps["ccx"] + ps["chx"] - 0.05)
+        my = np.maximum(my, ps["ccy"] - ps["chy"] + 0.05)
+        my = np.where(my > by + bdy, ps["ccy"] + ps["chy"] - 0.05, my)
+        px, py = np.where(move, mx, px), np.where(move, my, py)
+    ps["px"], ps["py"], ps["valid"] = px, py, inside(px, py)
+    return ps
+
+
+def _compact(valid: np.ndarray, max_len: int | None = None) -> np.ndarray:
+    """Stable order putting valid entries first along the last axis (indices), truncated to the max count."""
+    order = np.argsort(~valid, axis=-1, kind="stable")
+    n = int(valid.sum(-1).max(initial=0))
+    if max_len is not None:
+        n = min(n, max_len)
+    return order[..., :max(n, 1)]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Structure: everything discrete / hashed (shared by the numpy and torch shading)
+# --------------------------------------------------------------------------------------------------------------
+
+MAX_CANDIDATES = 36
+MAX_NEIGHBOURS = 18
+
+
+@dataclass
+class PointTable:
+    """All candidate points of an image: un-jittered p*, cell centre / half-size and jittered p (N,)."""
+
+    pstar_x: np.ndarray
+    pstar_y: np.ndarray
+    ccx: np.ndarray
+    ccy: np.ndarray
+    chx: np.ndarray
+    chy: np.ndarray
+    px: np.ndarray
+    py: np.ndarray
+    rot_u: np.ndarray     # u in [0,1): rot = delta * rot_u
+    nk: np.ndarray        # kernel count per point
+    kdraw: np.ndarray     # (N, kmax, 6) raw draws U of the kernels (v, pr, lx, ly, th, s)
+    inv: tuple = ()       # side_inverses of the jittered points (larp term of D)
+
+
+@dataclass
+class Structure:
+    """Discrete data of one render: per-pixel cell code, per-code candidates (Ncode, C) and the point table."""
+
+    code: np.ndarray          # (H, W) index into cand
+    cand: np.ndarray          # (Ncode, C) point ids
+    cand_valid: np.ndarray    # (Ncode, C)
+    points: PointTable
+
+
+def point_randoms(px, py, ccx, ccy, d: Decoded, stable: bool = False):
+    """Per point: rot u, kernel count and the 6 draws of each kernel (hashing p, or the cell centre if stable)."""
+    if stable:
+        sa = hash_seed(np.floor(24.0 * ccx).astype(np.int64) + 7, np.floor(24.0 * ccy).astype(np.int64) + 1)
+        sb = hash_seed(np.floor(24.0 * ccx).astype(np.int64) + 2, np.floor(24.0 * ccy).astype(np.int64) + 5)
+    else:
+        sa = hash_seed(np.floor(12.0 * px + 7.0).astype(np.int64), np.floor(12.0 * py + 1.0).astype(np.int64))
+        sb = hash_seed(np.floor(15.0 * px + 2.0).astype(np.int64), np.floor(15.0 * py + 5.0).astype(np.int64))
+    rot_u = 0.5 * draw(sa, 1) + 0.5
+    nk = d.npmin + np.trunc((d.npmax - d.npmin) * (0.5 * draw(sa, 2) + 0.5)).astype(np.int64)
+    km = d.kmax
+    kdraw = draw(sb[:, None], np.arange(1, 6 * km + 1)[None, :]).reshape(-1, km, 6) if km else \
+        np.zeros((sa.shape[0], 0, 6))
+    return rot_u, nk, kdraw
+
+
+def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = False) -> Structure:
+    """Deduplicate the tile neighbourhoods of all pixels and build their candidate point lists once."""
+    tt = TILING_TYPES[d.tiling]
+    ix, iy, q = cell_codes(x, y, tt)
+    ix0, iy0 = int(ix.min()), int(iy.min())
+    nyr, nq = int(iy.max()) - iy0 + 1, 16 * 36
+    key = ((ix - ix0) * nyr + (iy - iy0)) * nq + q
+    ukey, code = np.unique(key.ravel(), return_inverse=True)
+    code = code.reshape(x.shape)
+    cq = ukey % nq
+    ciy = (ukey // nq) % nyr + iy0
+    cix = (ukey // nq) // nyr + ix0
+    tcx, tcy, thx, thy = tiles_from_codes(cix, ciy, cq, tt)                       # (Ncode, 9)
+    tkey = np.round(np.stack([tcx, tcy, thx, thy], -1).reshape(-1, 4) * 240.0).astype(np.int64)
+    _, first, tinv = np.unique(tkey, axis=0, return_index=True, return_inverse=True)
+    tinv = tinv.reshape(tcx.shape)
+    ux, uy, uhx, uhy = (v.reshape(-1)[first] for v in (tcx, tcy, thx, thy))    # unique tiles (T,)
+    if tt.relax:
+        ps = relaxed_sets(ux, uy, uhx, uhy, tt)
+    else:
+        ps = point_sets(ux, uy, uhx, uhy, tt.p_sub)
+    sel = _compact(ps["valid"])
+    ps = {k: np.take_along_axis(v, sel, -1) for k, v in ps.items()}
+    n_slots = sel.shape[-1]
+    # candidates of each code: its 9 tiles x slots, valid first (stable), at most 36
+    pid = (tinv[..., None] * n_slots + np.arange(n_slots)).reshape(tinv.shape[0], -1)
+    pvalid = ps["valid"].reshape(-1)[pid]
+    keep = _compact(pvalid, MAX_CANDIDATES)
+    cand = np.take_along_axis(pid, keep, -1)
+    cand_valid = np.take_along_axis(pvalid, keep, -1)
+    flat = {k: v.reshape(-1) for k, v in ps.items()}
+    J = d.jitter
+    px = J * flat["px"] + (1.0 - J) * flat["ccx"]
+    py = J * flat["py"] + (1.0 - J) * flat["ccy"]
+    rot_u, nk, kdraw = point_randoms(px, py, flat["ccx"], flat["ccy"], d, stable)
+    pts = PointTable(flat["px"], flat["py"], flat["ccx"], flat["ccy"], flat["chx"], flat["chy"], px, py,
+                     rot_u, nk, kdraw, side_inverses(px, py, flat["ccx"], flat["ccy"], flat["chx"], flat["chy"]))
+    logger.debug("pptbf structure: %d codes, %d tiles, %d slots, %d candidates", cand.shape[0], ux.shape[0],
+                 n_slots, cand.shape[1])
+    return Structure(code, cand, cand_valid, pts)
+
+
+def _minkowski(ax: np.ndarray, ay: np.ndarray, p: float) -> np.ndarray:
+    """(|ax|^p + |ay|^p)^(1/p) for non-negative ax, ay."""
+    if p == 2.0:
+        return np.sqrt(ax * ax + ay * ay)
+    if p == 1.0:
+        return ax + ay
+    return (ax ** p + ay ** p) ** (1.0 / p)
+
+
+_BIG = 1e30
+
+
+def _inv_side(den: np.ndarray) -> np.ndarray:
+    """1 / den with 0 -> 1e30 (so that 0 * it = 0 and a * it is huge: the reference's 0/0, a/0 without NaN)."""
+    return 1.0 / np.where(den == 0.0, 1.0 / _BIG, den)
+
+
+def side_inverses(px, py, ccx, ccy, chx, chy) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse distances from points to their cell sides (left, right, bottom, top), for the larp term of D."""
+    return (_inv_side(px - ccx + chx), _inv_side(ccx + chx - px), _inv_side(py - ccy + chy),
+            _inv_side(ccy + chy - py))
+
+
+def rank_distance(dx, dy, inv, norm: float, larp: float) -> np.ndarray:
+    """Ranking distance D(q, p) = (1 - larp) ||q - p||_norm + larp max(e_x, e_y) from d = q - p (spec §2.3).
+
+    inv = side_inverses of p's cell: e_x = |d_x| / (distance from p to the cell side facing q).
+    """
+    ax, ay = np.abs(dx), np.abs(dy)
+    out = (1.0 - larp) * _minkowski(ax, ay, norm) if larp != 1.0 else 0.0
+    if larp != 0.0:
+        ex = ax * np.where(dx < 0.0, inv[0], inv[1])
+        ey = ay * np.where(dy < 0.0, inv[2], inv[3])
+        out = out + larp * np.maximum(ex, ey)
+    return out
+
+
+@dataclass
+class PixelStructure:
+    """Per-pixel discrete data of a chunk: neighbour point ids, and the cellular sector / border radii."""
+
+    nbr: np.ndarray           # (h, w, K) point ids (0 where invalid)
+    nbr_valid: np.ndarray     # (h, w, K)
+    ka: np.ndarray | None = None        # (h, w) sector index
+    up: np.ndarray | None = None        # (h, w) bool: the ray passes the upper half (third radius at ka+2, else ka-1)
+    rho: np.ndarray | None = None       # (h, w, 3) border radii at sectors ka, ka+1 and ka+2 (up) / ka-1
+    rho_comp: np.ndarray | None = None  # (h, w, 3) point id of the competing point at each border (-1: none)
+    local0: np.ndarray | None = None    # (h, w) index of the closest point among the code's candidates
+
+
+def rank_pixels(x: np.ndarray, y: np.ndarray, code: np.ndarray, st: Structure, d: Decoded) -> PixelStructure:
+    """Sort each pixel's candidates by D and keep the nearest min(n_c, 18)."""
+    cand, cval = st.cand[code], st.cand_valid[code]
+    P = st.points
+    inv = tuple(v[cand] for v in P.inv) if d.larp != 0.0 else ()
+    D = rank_distance(x[..., None] - P.px[cand], y[..., None] - P.py[cand], inv, d.wnorm, d.larp)
+    D = np.where(cval, D, np.inf)
+    C = cand.shape[-1]
+    k = min(C, MAX_NEIGHBOURS)
+    if C > k:
+        # ties -> lower index (as the reference's strict minimum search); partition then sort the k nearest
+        D = D + np.arange(C) * 1e-13
+        part = np.argpartition(D, k - 1, axis=-1)[..., :k]
+        order = np.take_along_axis(part, np.argsort(np.take_along_axis(D, part, -1), axis=-1), -1)
+    else:
+        order = np.argsort(D, axis=-1, kind="stable")
+    nbr_valid = np.take_along_axis(cval, order, -1)
+    nbr = np.where(nbr_valid, np.take_along_axis(cand, order, -1), 0)
+    return PixelStructure(nbr, nbr_valid, local0=order[..., 0])
+
+
+MARCH_DELTAS = (0.2, 0.1, 0.05, 0.025, 0.0125)
+#: candidates kept for the border search: the nearest to p0 (its cell's neighbours are among them)
+MARCH_NEIGHBOURS = 16
+#: the border search runs in float32 on coordinates relative to p0 (3x faster; resolution 0.2/64 anyway)
+MARCH_DTYPE = np.float32
+
+
+def _ray_closest(t, ex, ey, rel, larp: float) -> np.ndarray:
+    """Index of the candidate nearest (L2 + larp) to p0 + t e for t (Q, B); candidates (Q, C) relative to p0."""
+    rx, ry, i0, i1, i2, i3, valid = (r[:, None, :] for r in rel)
+    dx = (t * ex[:, None])[..., None] - rx
+    dy = (t * ey[:, None])[..., None] - ry
+    D = rank_distance(dx, dy, (i0, i1, i2, i3), 2.0, larp)
+    return np.argmin(np.where(valid, D, np.inf), axis=-1)
+
+
+MARCH_BLOCKS = (2, 4, 8, 16, 32, 38)   # steps probed per batch (sum = 100 steps per attempt)
+
+
+def march_border(ex, ey, rel, l0, larp: float, need_comp: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Distance from p0 to the border of its cell along e (reference march + 5 bisections), and the competitor.
+
+    rel = (px, py, 4 x side inverses, valid), each (Q, C), positions relative to p0; l0 = index of p0 there.
+    The march probes t = 0.1 + n delta, n = 1..100, until the closest candidate is not p0; queries that never
+    leave retry with halved steps (as the reference, down to delta 0.0125). Probes are batched in blocks.
+    Returns (rho (Q,), index of the closest other candidate just outside the border (Q,), -1 if none; None
+    unless need_comp).
+    """
+    Q = ex.shape[0]
+    t_in, t_out = np.zeros(Q, ex.dtype), np.zeros(Q, ex.dtype)
+    active = np.arange(Q)
+    for delta in MARCH_DELTAS:
+        if active.size == 0:
+            break
+        n0 = 0
+        for b in MARCH_BLOCKS:
+            if active.size == 0:
+                break
+            n = np.arange(n0 + 1, n0 + b + 1, dtype=ex.dtype)
+            t = (0.1 + n * delta)[None, :].repeat(active.size, 0)
+            gone = _ray_closest(t, ex[active], ey[active], tuple(r[active] for r in rel), larp) != l0[active, None]
+            first = np.argmax(gone, axis=1)
+            hit = gone[np.arange(active.size), first]
+            last = np.where(hit, first, b - 1)
+            t_out[active] = t[np.arange(active.size), last]
+            t_in[active] = t_out[active] - delta
+            active = active[~hit]
+            n0 += b
+    for _ in range(5):
+        mid = 0.5 * (t_in + t_out)
+        inside = _ray_closest(mid[:, None], ex, ey, rel, larp)[:, 0] == l0
+        t_in, t_out = np.where(inside, mid, t_in), np.where(inside, t_out, mid)
+    rho = np.abs(0.5 * (t_in + t_out)).astype(np.float64)
+    if not need_comp:
+        return rho, None
+    comp = _ray_closest(t_out[:, None], ex, ey, rel, larp)[:, 0]
+    return rho, np.where(comp == l0, -1, comp)
+
+
+def _march_queries(code, local0, j, st: Structure, d: Decoded, need_comp: bool):
+    """Border radii for per-pixel queries (code, local index of p0, sector j), deduplicated."""
+    P = st.points
+    nsec = d.n_sectors + 4
+    key = (code[..., None].astype(np.int64) * MAX_CANDIDATES + local0[..., None]) * nsec + (j + 1)
+    ukey, inv = np.unique(key.ravel(), return_inverse=True)
+    uj = ukey % nsec - 1
+    ul0 = (ukey // nsec) % MAX_CANDIDATES
+    ucode = (ukey // nsec) // MAX_CANDIDATES
+    cand, cval = st.cand[ucode], st.cand_valid[ucode]
+    rows = np.arange(cand.shape[0])
+    up0 = cand[rows, ul0]
+    rx, ry = P.px[cand] - P.px[up0][:, None], P.py[cand] - P.py[up0][:, None]
+    if cand.shape[1] > MARCH_NEIGHBOURS:
+        far = np.where(cval, rx * rx + ry * ry, np.inf)
+        far[rows, ul0] = -1.0
+        sub = np.sort(np.argpartition(far, MARCH_NEIGHBOURS - 1, axis=-1)[:, :MARCH_NEIGHBOURS], axis=-1)
+    else:
+        sub = np.broadcast_to(np.arange(cand.shape[1]), cand.shape)
+    cs = np.take_along_axis(cand, sub, -1)
+    zeros = np.zeros(cs.shape, dtype=MARCH_DTYPE)
+    inv_sides = tuple(v[cs].astype(MARCH_DTYPE) for v in P.inv) if d.larp != 0.0 else (zeros,) * 4
+    rel = (np.take_along_axis(rx, sub, -1).astype(MARCH_DTYPE), np.take_along_axis(ry, sub, -1).astype(MARCH_DTYPE),
+           *inv_sides, np.take_along_axis(cval, sub, -1))
+    l0 = np.argmax(sub == ul0[:, None], axis=-1)
+    theta = uj * d.delta + d.delta * P.rot_u[up0]
+    ex, ey = np.cos(theta).astype(MARCH_DTYPE), np.sin(theta).astype(MARCH_DTYPE)
+    rho, comp = march_border(ex, ey, rel, l0, d.larp, need_comp)
+    rho = rho[inv].reshape(j.shape)
+    if not need_comp:
+        return rho, None
+    comp_id = np.where(comp >= 0, cs[rows, np.maximum(comp, 0)], -1)
+    return rho, comp_id[inv].reshape(j.shape)
+
+
+def upper_branch(alpha, p0x, p0y, ta, rho_a, rho_b, delta: float) -> np.ndarray:
+    """Whether the ray at angle alpha lies past the midpoint M of the sector's border points A, B (spec §2.6)."""
+    ax, ay = p0x + rho_a * np.cos(ta), p0y + rho_a * np.sin(ta)
+    bx, by = p0x + rho_b * np.cos(ta + delta), p0y + rho_b * np.sin(ta + delta)
+    mx, my = 0.5 * (ax + bx), 0.5 * (ay + by)
+    am = np.mod(np.arctan2(my - p0y, mx - p0x), 2.0 * math.pi)
+    far = np.abs(alpha - am) > 2.0 * delta
+    am = np.where(far & (alpha < 2.0 * delta), am - 2.0 * math.pi,
+                  np.where(far & (alpha > 2.0 * math.pi - 2.0 * delta), am + 2.0 * math.pi, am))
+    return alpha > am
+
+
+def cellular_sectors(x, y, ps: PixelStructure, code: np.ndarray, st: Structure, d: Decoded,
+                     need_comp: bool = False) -> None:
+    """Fill ps.ka / up / rho / rho_comp: the closest cell's border radii at sectors ka, ka+1 and ka+2 or ka-1."""
+    P = st.points
+    p0 = ps.nbr[..., 0]
+    p0x, p0y = P.px[p0], P.py[p0]
+    alpha = np.mod(np.arctan2(y - p0y, x - p0x), 2.0 * math.pi)
+    delta = d.delta
+    rot = delta * P.rot_u[p0]
+    palpha = alpha - rot
+    palpha = np.where(palpha < 0.0, palpha + 2.0 * math.pi, palpha)
+    ka = np.floor(palpha / delta).astype(np.int64)
+    rho_ab, comp_ab = _march_queries(code, ps.local0, ka[..., None] + np.arange(2), st, d, need_comp)
+    ta = ka * delta + rot
+    up = upper_branch(alpha, p0x, p0y, ta, rho_ab[..., 0], rho_ab[..., 1], delta)
+    rho_c, comp_c = _march_queries(code, ps.local0, np.where(up, ka + 2, ka - 1)[..., None], st, d, need_comp)
+    ps.ka, ps.up = ka, up
+    ps.rho = np.concatenate([rho_ab, rho_c], axis=-1)
+    if need_comp:
+        ps.rho_comp = np.concatenate([comp_ab, comp_c], axis=-1)
+
+
+def pixel_structure(x, y, code, st: Structure, d: Decoded, need_comp: bool = False) -> PixelStructure:
+    """Ranking plus (when the cellular window is used) the border radii (and competitors) for a chunk of pixels."""
+    ps = rank_pixels(x, y, code, st, d)
+    if uses_cellular(d):
+        cellular_sectors(x, y, ps, code, st, d, need_comp)
+    return ps
+
+
+def uses_cellular(d: Decoded) -> bool:
+    """The cellular window matters only with beta > 0 and a windowed mixture."""
+    return d.beta != 0.0 and d.mixture not in (3, 4)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Shading (numpy): windows, cellular window, features, mixtures (spec §2.5-2.7)
+# --------------------------------------------------------------------------------------------------------------
+
+def _wnorm(ax: np.ndarray, ay: np.ndarray, p: float) -> np.ndarray:
+    """Minkowski norm blended towards L-inf for p > 2 (windows and features)."""
+    r = _minkowski(ax, ay, p)
+    if p > 2.0:
+        r = (p - 2.0) * np.maximum(ax, ay) + (3.0 - p) * r
+    return r
+
+
+def classical_window(r: np.ndarray, d: Decoded) -> np.ndarray:
+    """g_k(r) for the 4 window shapes, clamped to [0, 1]."""
+    F = d.footprint
+    if d.shape in (0, 1):
+        g = (np.exp(-2.0 * r) - math.exp(-2.0 * F)) / (1.0 - math.exp(-2.0 * F))
+    elif d.shape == 2:
+        g = 1.0 - r / F
+    else:
+        g = (r <= F).astype(np.float64)
+    return np.clip(g, 0.0, 1.0)
+
+
+def _lam(p0x, p0y, wx, wy, ax, ay, bx, by):
+    """Ray (p0 + lam w) / line (A, B) intersection parameter."""
+    ux, uy = bx - ax, by - ay
+    n = np.sqrt(ux * ux + uy * uy)
+    ux, uy = ux / n, uy / n
+    return (ux * (p0y - ay) - uy * (p0x - ax)) / (wx * uy - wy * ux)
+
+
+def cellular_cv(qx, qy, p0x, p0y, rot, ka, up, rho, d: Decoded) -> np.ndarray:
+    """Cellular coordinate cv in [0, 1] of the closest cell (polygon / midpoint polygon / Bezier blend)."""
+    delta = d.delta
+    dx, dy = qx - p0x, qy - p0y
+    sdd = np.sqrt(dx * dx + dy * dy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wx, wy = dx / sdd, dy / sdd
+        ta = ka * delta + rot
+
+        def pt(r, t):
+            return p0x + r * np.cos(t), p0y + r * np.sin(t)
+
+        ax, ay = pt(rho[..., 0], ta)
+        bx, by = pt(rho[..., 1], ta + delta)
+        mx, my = 0.5 * (ax + bx), 0.5 * (ay + by)
+        cx_, cy_ = pt(rho[..., 2], np.where(up, ta + 2.0 * delta, ta - delta))
+        nx, ny = np.where(up, 0.5 * (bx + cx_), 0.5 * (ax + cx_)), np.where(up, 0.5 * (by + cy_), 0.5 * (ay + cy_))
+        # segment (s0 -> s1) of the midpoint polygon crossed by the ray, Bezier control point ctl
+        s0x, s0y = np.where(up, mx, nx), np.where(up, my, ny)
+        s1x, s1y = np.where(up, nx, mx), np.where(up, ny, my)
+        ctlx, ctly = np.where(up, bx, ax), np.where(up, by, ay)
+        lam = _lam(p0x, p0y, wx, wy, s0x, s0y, s1x, s1y)
+        sx, sy = p0x + lam * wx, p0y + lam * wy
+        t = np.hypot(sx - s0x, sy - s0y) / np.hypot(s1x - s0x, s1y - s0y)
+        qbx = (1 - t) ** 2 * s0x + 2 * t * (1 - t) * ctlx + t * t * s1x
+        qby = (1 - t) ** 2 * s0y + 2 * t * (1 - t) * ctly + t * t * s1y
+        r0 = _lam(p0x, p0y, wx, wy, ax, ay, bx, by)
+        r1 = np.hypot(sx - p0x, sy - p0y)
+        r2 = np.hypot(qbx - p0x, qby - p0y)
+        sm = d.smooth
+        if sm < 1.0:
+            cv = (1.0 - sm) * (1.0 - sdd / r0) + sm * (1.0 - sdd / r1)
+        elif sm < 2.0:
+            cv = (2.0 - sm) * (1.0 - sdd / r1) + (sm - 1.0) * (1.0 - sdd / r2)
+        else:
+            cv = 1.0 - sdd / r2
+    cv = np.clip(np.nan_to_num(cv, nan=0.0), 0.0, 1.0)
+    return np.where(sdd < 1e-4, 1.0, cv)
+
+
+def cellular_weight(cv: np.ndarray, sigma: float) -> np.ndarray:
+    """Wc = (exp(sigma (cv - 1)) - exp(-sigma)) / (1 - exp(-sigma)) (-> cv as sigma -> 0)."""
+    if sigma < 1e-6:
+        return cv
+    return (np.exp(sigma * (cv - 1.0)) - math.exp(-sigma)) / (1.0 - math.exp(-sigma))
+
+
+@dataclass
+class KernelTable:
+    """Per point and kernel (N, kmax): centre l, 1/cell size, rotation, decay, priority and signed value."""
+
+    lx: np.ndarray
+    ly: np.ndarray
+    cos_t: np.ndarray
+    sin_t: np.ndarray
+    s: np.ndarray
+    pr: np.ndarray
+    val: np.ndarray
+    inv_hx: np.ndarray   # (N,)
+    inv_hy: np.ndarray
+
+
+def kernel_table(P: PointTable, d: Decoded) -> KernelTable:
+    """Everything about the kernels that does not depend on the pixel, computed once per point."""
+    kd = P.kdraw
+    lx = P.ccx[:, None] + 0.99 * kd[..., 2] * P.chx[:, None]
+    ly = P.ccy[:, None] + 0.99 * kd[..., 3] * P.chy[:, None]
+    lx = d.corr * P.px[:, None] + (1.0 - d.corr) * lx
+    ly = d.corr * P.py[:, None] + (1.0 - d.corr) * ly
+    th = d.theta_max * kd[..., 4]
+    with np.errstate(divide="ignore"):
+        ihx, ihy = 1.0 / P.chx, 1.0 / P.chy
+    return KernelTable(lx, ly, np.cos(th), np.sin(th), d.sigcos * (1.0 + (0.5 * kd[..., 5] + 0.5) * d.sigcosvar),
+                       0.5 * kd[..., 1] + 0.5, np.where(kd[..., 0] < 0.0, -0.25 + 0.75 * kd[..., 0],
+                                                         0.25 + 0.75 * kd[..., 0]), ihx, ihy)
+
+
+def kernel_entries(qx, qy, pid, P: PointTable, K: KernelTable, d: Decoded):
+    """The active kernels (i < n_k) of (pixel, point) pairs, flattened: (pair index, flat kernel id, ff, ddist)."""
+    nk = P.nk[pid]
+    e_pair = np.repeat(np.arange(pid.shape[0]), nk)
+    km = max(K.lx.shape[1], 1)
+    start = np.cumsum(nk) - nk
+    flat = np.arange(e_pair.shape[0]) + np.repeat(pid * km - start, nk)
+    dlx = (np.repeat(qx, nk) - K.lx.reshape(-1)[flat]) * np.repeat(K.inv_hx[pid], nk)
+    dly = (np.repeat(qy, nk) - K.ly.reshape(-1)[flat]) * np.repeat(K.inv_hy[pid], nk)
+    ct, st_ = K.cos_t.reshape(-1)[flat], K.sin_t.reshape(-1)[flat]
+    u = dlx * ct - dly * st_
+    v = (dlx * st_ + dly * ct) * 2.0 ** -d.aniso
+    rf = _wnorm(np.abs(u), np.abs(v), d.fnorm)
+    if d.freq == 0:
+        ff = np.ones_like(u)
+    else:
+        ff = (0.5 + 0.5 * np.cos(math.pi * d.freq * np.sqrt((d.curv * u) ** 2 + v * v))) ** (1.0 / (1e-4 + d.thick))
+    ddist = rf * K.s.reshape(-1)[flat] * (1.0 / d.footprint)
+    return e_pair, flat, ff, ddist
+
+
+def _mixture_value(x, y, pix, pid, win_sel, P: PointTable, K: KernelTable, d: Decoded, n_pix: int) -> np.ndarray:
+    """V per pixel (flat) of mixtures 1-4 from the selected (pixel, point) pairs."""
+    e_pair, flat, ff, ddist = kernel_entries(x.reshape(-1)[pix], y.reshape(-1)[pix], pid, P, K, d)
+    ex = np.exp(-ddist)
+    V = np.zeros(n_pix)
+    if d.mixture in (1, 2):
+        if d.mixture == 1:
+            F = 0.5 + 0.5 * np.bincount(e_pair, weights=ff * K.val.reshape(-1)[flat] * ex, minlength=pid.shape[0])
+        else:
+            F = np.bincount(e_pair, weights=ff * ex, minlength=pid.shape[0]) / max(d.npmax // 2, 1)
+        cp, sp = math.cos(d.phi) ** 2, math.sin(d.phi) ** 2
+        F = F * cp + (1.0 - F) * sp
+        return np.bincount(pix, weights=win_sel * F, minlength=n_pix)
+    epix = pix[e_pair]
+    if d.mixture == 4:
+        np.maximum.at(V, epix, ff * ex)
+        return V
+    ok = np.flatnonzero((ddist < 1.0) & (ff > 0.5))
+    if ok.size:
+        pr = K.pr.reshape(-1)[flat[ok]]
+        top = np.full(n_pix, -1.0)
+        np.maximum.at(top, epix[ok], pr)
+        hit = ok[pr == top[epix[ok]]]
+        upix, first = np.unique(epix[hit], return_index=True)
+        e = hit[first]
+        V[upix] = 2.0 * (ff[e] - 0.5) * ex[e]
+    return V
+
+
+def shade(x, y, ps: PixelStructure, P: PointTable, d: Decoded, K: KernelTable | None = None) -> np.ndarray:
+    """PPTBF value V of a chunk of pixels from its structure (numpy reference of the shading)."""
+    h, w = x.shape
+    nbr, val = ps.nbr, ps.nbr_valid
+    win = np.zeros(nbr.shape)
+    if d.mixture not in (3, 4):
+        dx, dy = x[..., None] - P.px[nbr], y[..., None] - P.py[nbr]
+        win = np.where(val, (1.0 - d.beta) * classical_window(_wnorm(np.abs(dx), np.abs(dy), d.wnorm), d), 0.0)
+        if uses_cellular(d):
+            p0 = nbr[..., 0]
+            cv = cellular_cv(x, y, P.px[p0], P.py[p0], d.delta * P.rot_u[p0], ps.ka, ps.up, ps.rho, d)
+            win[..., 0] += d.beta * cellular_weight(cv, d.sigma_w)
+    if d.mixture in (0, 5):
+        V = win.sum(-1) * (1.0 if d.mixture == 0 else math.cos(d.phi) ** 2)
+    else:
+        sel = val & (win != 0.0) if d.mixture in (1, 2) else val
+        pix, kk = np.nonzero(sel.reshape(h * w, -1))
+        pid = nbr.reshape(h * w, -1)[pix, kk]
+        K = kernel_table(P, d) if K is None else K
+        V = _mixture_value(x, y, pix, pid, win.reshape(h * w, -1)[pix, kk], P, K, d, h * w).reshape(h, w)
+    if d.mixture not in (3, 4) and d.shape == 0:
+        ws = win.sum(-1)
+        V = np.where(ws > 0.0, V / np.where(ws > 0.0, ws, 1.0), V)
+    return np.maximum(V, 0.0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Public API
+# --------------------------------------------------------------------------------------------------------------
+
+CHUNK_ELEMS = 1 << 19   # measured: smaller chunks are faster (cache), 2^19..2^20 best
+
+
+def _chunk_rows(width: int, per_pixel: int) -> int:
+    """Rows per chunk so that a chunk holds about CHUNK_ELEMS per-pixel-candidate elements."""
+    return max(1, CHUNK_ELEMS // max(1, width * per_pixel))
+
+
+def prepare(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,
+            ref_width: int | None = None, stable: bool = False):
+    """Decode params, compute domain coordinates and the structure (shared by numpy and torch evaluation)."""
+    height = width if height is None else height
+    if width < 1 or height < 1:
+        raise ValueError(f"PPTBF image size must be positive, got {width}x{height}")
+    if pixel_scale <= 0:
+        raise ValueError(f"PPTBF pixel_scale must be > 0, got {pixel_scale}")
+    d = decode(params)
+    zoom = float(ref_width or width) / d.res
+    x0, y0 = base_coords(width, height, shift, pixel_scale, ref_width)
+    x, y = domain_coords(x0, y0, d, zoom)
+    return d, zoom, x, y, build_structure(x, y, d, stable)
+
+
+def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,
+             ref_width: int | None = None) -> np.ndarray:
+    """Raw PPTBF V (H, W) float32.
+
+    `ref_width` is the width at which the parameters are defined (default: width): the period is
+    int(resolution) * pixel_scale pixels whatever the output width, so a larger width extends the pattern and
+    pixel_scale=2 doubles its size (the distortion follows). `shift` (in reference widths) picks the realisation.
+    """
+    d, zoom, x, y, st = prepare(params, width, height, shift=shift, pixel_scale=pixel_scale, ref_width=ref_width)
+    out = np.empty(x.shape, dtype=np.float32)
+    K = kernel_table(st.points, d)
+    rows = _chunk_rows(x.shape[1], st.cand.shape[1] * max(1, d.kmax))
+    for r0 in range(0, x.shape[0], rows):
+        sl = slice(r0, r0 + rows)
+        ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d)
+        out[sl] = shade(x[sl], y[sl], ps, st.points, d, K)
+    return out
+
+
+def binarize(values: np.ndarray, threshold: float) -> np.ndarray:
+    """Percentile threshold (spec §3): white = V > quantile(V, 1 - T), so T ~ white fraction; non-finite -> 0."""
+    v = np.asarray(values, dtype=np.float64)
+    finite = np.isfinite(v)
+    if not finite.any():
+        return np.zeros(v.shape, dtype=bool)
+    cut = np.quantile(v[finite], min(max(1.0 - float(threshold), 0.0), 1.0))
+    return finite & (np.where(finite, v, -np.inf) > cut)
+
+
+def render_mask(params, width: int, height: int | None = None, **kw) -> np.ndarray:
+    """Binary PPTBF mask: evaluate then binarize with the vector's own threshold (entry 0)."""
+    p = _as_params(params)
+    return binarize(evaluate(p, width, height, **kw), p[0])
+
+
+def evaluate_torch(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,
+                   ref_width: int | None = None, stable: bool = False, device=None, dtype=None):
+    """Differentiable torch PPTBF (H, W) tensor; equals `evaluate` in float64 exact mode (see pptbf_torch.py)."""
+    from pptbf_db.pptbf_torch import evaluate_torch as _evaluate_torch
+
+    return _evaluate_torch(params, width, height, shift=shift, pixel_scale=pixel_scale, ref_width=ref_width,
+                           stable=stable, device=device, dtype=dtype)

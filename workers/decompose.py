@@ -1,0 +1,214 @@
+"""Run a decomposition tree described by a manifest-style dict and return the tree of masks (MaskNode).
+
+Spec (JSON/TOML dict), every key optional except inside ``children``::
+
+    {"method": "matting",            # "matting" | "instances" | "leaf"
+     "layers": 2,                    # matting: int 2..8 or "auto" (silhouette over k = 2..5)
+     "scribbles": None,              # matting: scribble image array (see workers.matting) or None = automatic
+     "scribbles_source": "s.png",    # optional file name used in error messages
+     "spectral_weight": 0.5,         # matting: weight of the spectral PCA-3 features
+     "children": {"0": {...}, "1": {"method": "instances"}}}
+
+Matting keys also accepted: k, k_nonlocal, lambda, confidence, seed_smooth. Instance keys: open_close,
+min_side, distance_threshold, outlier_z, crop_size. ``spec=None`` means ``{"method": "matting", "layers": 2}``
+(an automatic two-layer split of the whole material; its leaves are then sub-materials).
+
+Node ids: "root", "root.0", "root.1", "root.0.1", ... (layer / kind index). A split solves only over its parent's
+pixels. Matting layers that come out empty are dropped (a warning; the other ids keep their index).
+Children specs for an index that a split did not produce ("auto" layers, instance kinds) are ignored with a
+warning.
+"""
+from __future__ import annotations
+
+import logging
+import numbers
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import InputError, ManifestError
+from .instances import InstanceConfig, split_instances
+from .matting import MAX_LAYERS, FeatureMaps, MattingConfig, feature_maps, matte
+from .tree import MaskNode, root_node
+
+logger = logging.getLogger(__name__)
+
+METHODS = ("matting", "instances", "leaf")
+DEFAULT_SPEC: dict = {"method": "matting", "layers": 2}
+_MATTING_KEYS = {"layers": "layers", "scribbles": None, "scribbles_source": None, "spectral_weight": "spectral_weight",
+                 "k": "k", "k_nonlocal": "k_nonlocal", "lambda": "lam", "confidence": "confidence",
+                 "seed_smooth": "seed_smooth"}
+_INSTANCE_KEYS = {"open_close": "open_close", "min_side": "min_side", "distance_threshold": "distance_threshold",
+                  "outlier_z": "outlier_z", "crop_size": "crop_size"}
+
+
+# ----------------------------------------------------------------------------- validation
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def _check_node(spec: Any, where: str, problems: list[str]) -> None:
+    """Append every problem of one spec node (and its children) to problems."""
+    if not isinstance(spec, Mapping):
+        problems.append(f"{where}: must be a table/dict, got {type(spec).__name__}")
+        return
+    method = spec.get("method", "matting")
+    if method not in METHODS:
+        problems.append(f"{where}.method: must be one of {', '.join(METHODS)}, got {method!r}")
+        return
+    allowed = {"method", "children"} | (set(_MATTING_KEYS) if method == "matting" else set()) \
+        | (set(_INSTANCE_KEYS) if method == "instances" else set())
+    for key in spec:
+        if key not in allowed:
+            problems.append(f"{where}.{key}: unknown key for method {method!r} (allowed: {', '.join(sorted(allowed))})")
+    layers = spec.get("layers", 2)
+    if method == "matting":
+        if not (layers == "auto" or (_is_int(layers) and 2 <= layers <= MAX_LAYERS)):
+            problems.append(f"{where}.layers: must be an integer 2..{MAX_LAYERS} or \"auto\", got {layers!r}")
+        sc = spec.get("scribbles")
+        if sc is not None and not (isinstance(sc, np.ndarray) and sc.ndim in (2, 3)):
+            problems.append(f"{where}.scribbles: must be an image array (HxW or HxWxC) or None; the service reads "
+                            f"the file, got {type(sc).__name__}")
+        src = spec.get("scribbles_source")
+        if src is not None and not isinstance(src, str):
+            problems.append(f"{where}.scribbles_source: must be a file name string")
+        for key, lo, integer in (("spectral_weight", 0.0, False), ("k", 1, True), ("k_nonlocal", 0, True),
+                                 ("lambda", 1e-9, False), ("confidence", 1e-9, False), ("seed_smooth", 0.0, False)):
+            if key in spec and not ((_is_int if integer else _is_num)(spec[key]) and spec[key] >= lo):
+                problems.append(f"{where}.{key}: must be {'an integer' if integer else 'a number'} >= {lo}, "
+                                f"got {spec[key]!r}")
+        if "confidence" in spec and _is_num(spec["confidence"]) and spec["confidence"] > 1:
+            problems.append(f"{where}.confidence: must be <= 1, got {spec['confidence']!r}")
+    if method == "instances":
+        if "open_close" in spec and not isinstance(spec["open_close"], bool):
+            problems.append(f"{where}.open_close: must be true or false, got {spec['open_close']!r}")
+        for key, lo, integer in (("min_side", 1, True), ("crop_size", 4, True), ("distance_threshold", 1e-9, False),
+                                 ("outlier_z", 1e-9, False)):
+            if key in spec and not ((_is_int if integer else _is_num)(spec[key]) and spec[key] >= lo):
+                problems.append(f"{where}.{key}: must be {'an integer' if integer else 'a number'} >= {lo}, "
+                                f"got {spec[key]!r}")
+    children = spec.get("children")
+    if children is None:
+        return
+    if method == "leaf":
+        problems.append(f"{where}.children: a leaf has no children; set method to matting or instances")
+        return
+    if not isinstance(children, Mapping):
+        problems.append(f"{where}.children: must be a table/dict keyed by child index (\"0\", \"1\", ...)")
+        return
+    for key, child in children.items():
+        k = str(key)
+        if not k.isdigit():
+            problems.append(f"{where}.children.{k}: child keys must be layer/kind indices \"0\", \"1\", ...")
+            continue
+        if method == "matting" and _is_int(layers) and int(k) >= layers:
+            problems.append(f"{where}.children.{k}: this split has only {layers} layers (indices 0..{layers - 1})")
+        _check_node(child, f"{where}.children.{k}", problems)
+
+
+def validate_spec(spec: Mapping | None, where: str = "decompose") -> dict:
+    """Check a decomposition spec; returns it (DEFAULT_SPEC for None) or raises ManifestError listing every problem."""
+    if spec is None:
+        return dict(DEFAULT_SPEC)
+    problems: list[str] = []
+    _check_node(spec, where, problems)
+    if problems:
+        raise ManifestError(problems)
+    return dict(spec)
+
+
+# ----------------------------------------------------------------------------- inputs
+
+def _arrays(maps: Any) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(albedo HxWx3, height HxW | None, roughness HxW | None) from a Material or a dict of arrays."""
+    if hasattr(maps, "maps") and callable(maps.maps):
+        maps = maps.maps()
+    if not isinstance(maps, Mapping):
+        raise InputError(f"decompose needs a Material or a dict of arrays, got {type(maps).__name__}")
+    if maps.get("albedo") is None:
+        raise InputError("decompose: the maps have no 'albedo'")
+    albedo = np.asarray(maps["albedo"], np.float32)
+    if albedo.ndim == 2:
+        albedo = albedo[..., None]
+    if albedo.ndim != 3 or albedo.shape[2] not in (1, 3, 4):
+        raise InputError(f"decompose: albedo must be HxWx3, got shape {albedo.shape}")
+    albedo = np.repeat(albedo, 3, axis=2) if albedo.shape[2] == 1 else albedo[..., :3]
+    out = []
+    for name in ("height", "roughness"):
+        m = maps.get(name)
+        if m is not None:
+            m = np.asarray(m, np.float32)
+            m = m[..., 0] if m.ndim == 3 else m
+            if m.shape != albedo.shape[:2]:
+                raise InputError(f"decompose: {name} is {m.shape[1]}x{m.shape[0]} but the albedo is "
+                                 f"{albedo.shape[1]}x{albedo.shape[0]}")
+        out.append(m)
+    height, rough = out
+    if height is None and maps.get("normal") is not None:
+        from .height import normal_to_height
+
+        height, _ = normal_to_height(np.asarray(maps["normal"], np.float32))
+    return albedo, height, rough
+
+
+def _uses_spectrum(spec: Mapping) -> bool:
+    if spec.get("method", "matting") == "matting" and spec.get("spectral_weight", 0.5) > 0:
+        return True
+    return any(_uses_spectrum(c) for c in (spec.get("children") or {}).values())
+
+
+# ----------------------------------------------------------------------------- running
+
+def _matting_config(spec: Mapping) -> MattingConfig:
+    return MattingConfig(**{attr: spec[key] for key, attr in _MATTING_KEYS.items()
+                            if attr and attr != "layers" and key in spec})
+
+
+def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
+    """Split node in place according to spec (recursively)."""
+    method = spec.get("method", "matting")
+    if method == "leaf":
+        return
+    children_spec = {str(k): v for k, v in (spec.get("children") or {}).items()}
+    if method == "matting":
+        res = matte(fm, node.mask, spec.get("layers", 2), spec.get("scribbles"), _matting_config(spec), seed,
+                    source=spec.get("scribbles_source"))
+        node.method, node.meta = "matting", {**node.meta, **res.meta}
+        for i, m in enumerate(res.masks()):
+            if not m.any():
+                logger.warning("%s: matting layer %d is empty; dropped", node.id, i)
+                continue
+            node.children.append(MaskNode(id=f"{node.id}.{i}", mask=m, alpha=res.alphas[i]))
+    else:
+        cfg = InstanceConfig(**{attr: spec[key] for key, attr in _INSTANCE_KEYS.items() if key in spec})
+        res = split_instances(node.mask, fm.colour, cfg, seed)
+        node.method, node.shares = "instances", list(res.shares)
+        node.meta = {**node.meta, **res.meta, "instance_labels": res.labels, "instance_kinds": res.kinds.tolist()}
+        node.children = [MaskNode(id=f"{node.id}.{i}", mask=m) for i, m in enumerate(res.masks)]
+    made = {c.id.rsplit(".", 1)[1] for c in node.children}
+    for key in sorted(set(children_spec) - made):
+        logger.warning("%s: spec has children.%s but the split made no such child; ignored", node.id, key)
+    for child in node.children:
+        sub = children_spec.get(child.id.rsplit(".", 1)[1])
+        if sub is not None:
+            _split(child, sub, fm, seed)
+
+
+def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode:
+    """Decompose a material into a mask tree.
+
+    maps: a Material, or a dict of arrays (linear albedo HxWx3; optional height, roughness, normal).
+    spec: see the module docstring (None = automatic two-layer matting at the root). Deterministic from seed.
+    """
+    spec = validate_spec(spec)
+    albedo, height, rough = _arrays(maps)
+    fm = feature_maps(albedo, height, rough, spectrum_dims=16 if _uses_spectrum(spec) else 0, seed=seed)
+    root = root_node(*albedo.shape[:2])
+    root.meta["features"] = fm.names
+    _split(root, spec, fm, seed)
+    return root

@@ -1,0 +1,138 @@
+"""Exports of regenerated maps to artists' tools: MaterialX (standard_surface + UsdPreviewSurface) and glTF maps."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class ExportedFiles:
+    """Paths written by :func:`export_maps`."""
+
+    folder: Path
+    base_color: Path
+    normal: Path
+    orm: Path
+    roughness: Path
+    height: Path | None
+    materialx: Path | None
+
+
+def pack_orm(roughness: np.ndarray, metallic: np.ndarray | None = None, occlusion: np.ndarray | None = None) -> np.ndarray:
+    """glTF occlusion-roughness-metallic texture: R = occlusion (1), G = roughness, B = metallic (0)."""
+    r = np.asarray(roughness, dtype=np.float32)
+    r = r[..., 0] if r.ndim == 3 else r
+    m = np.zeros_like(r) if metallic is None else np.asarray(metallic, dtype=np.float32).reshape(r.shape)
+    o = np.ones_like(r) if occlusion is None else np.asarray(occlusion, dtype=np.float32).reshape(r.shape)
+    return np.clip(np.stack([o, r, m], axis=-1), 0.0, 1.0)
+
+
+def encode_normal(normal: np.ndarray) -> np.ndarray:
+    """Unit OpenGL normal in [-1,1] -> the usual [0,1] texture encoding."""
+    return np.clip(np.asarray(normal, dtype=np.float32) * 0.5 + 0.5, 0.0, 1.0)
+
+
+def export_maps(maps: dict[str, np.ndarray], folder: str | Path, name: str = "material",
+                materialx: bool = True, bits: int = 8) -> ExportedFiles:
+    """Write glTF-ready maps (sRGB base colour, OpenGL normal, packed ORM) and, optionally, a MaterialX document."""
+    from .maps import linear_to_srgb, write_image
+
+    for req in ("albedo", "normal", "roughness"):
+        if req not in maps:
+            raise InputError(f"export of {name!r}: map {req!r} missing (have {sorted(maps)})")
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    base = out / f"{name}_basecolor.png"
+    nrm = out / f"{name}_normal_gl.png"
+    orm = out / f"{name}_orm.png"
+    rough = out / f"{name}_roughness.png"
+    write_image(base, linear_to_srgb(np.clip(maps["albedo"], 0, 1)), bits=bits)
+    write_image(nrm, encode_normal(maps["normal"]), bits=bits)
+    write_image(orm, pack_orm(maps["roughness"], maps.get("metallic")), bits=bits)
+    write_image(rough, np.clip(maps["roughness"], 0, 1), bits=bits)
+    height = None
+    if "height" in maps:
+        height = out / f"{name}_height.png"
+        h = maps["height"]
+        write_image(height, (h - h.min()) / max(float(h.max() - h.min()), 1e-8), bits=16)
+    mtlx = write_materialx(out / f"{name}.mtlx", name, base.name, nrm.name, rough.name,
+                           "metallic" in maps and orm.name or None) if materialx else None
+    return ExportedFiles(out, base, nrm, orm, rough, height, mtlx)
+
+
+def write_materialx(path: str | Path, name: str, base_color: str, normal: str, roughness: str,
+                    orm: str | None = None) -> Path:
+    """A MaterialX 1.38+ document: image nodes -> standard_surface and UsdPreviewSurface, both as materials."""
+    import MaterialX as mx
+
+    doc = mx.createDocument()
+    ng = doc.addNodeGraph(f"NG_{name}")
+
+    def image(node_name: str, file: str, typ: str, colorspace: str | None = None) -> mx.Node:
+        node = ng.addNode("image", node_name, typ)
+        inp = node.addInput("file", "filename")
+        inp.setValueString(file)
+        if colorspace:
+            inp.setColorSpace(colorspace)
+        return node
+
+    base = image("base_color", base_color, "color3", "srgb_texture")
+    rough = image("roughness", roughness, "float")
+    nimg = image("normal_image", normal, "vector3")
+    nmap = ng.addNode("normalmap", "normalmap", "vector3")
+    nmap.addInput("in", "vector3").setConnectedNode(nimg)
+    outs = {}
+    for nm, node, typ in (("out_base", base, "color3"), ("out_rough", rough, "float"), ("out_normal", nmap, "vector3")):
+        o = ng.addOutput(nm, typ)
+        o.setConnectedNode(node)
+        outs[nm] = o
+    metal_out = None
+    if orm:
+        orm_img = image("orm", orm, "vector3")
+        sep = ng.addNode("extract", "metallic_extract", "float")
+        sep.addInput("in", "vector3").setConnectedNode(orm_img)
+        sep.addInput("index", "integer").setValue(2)
+        metal_out = ng.addOutput("out_metal", "float")
+        metal_out.setConnectedNode(sep)
+
+    def bind(shader: mx.Node, inp: str, typ: str, out: mx.Output) -> None:
+        i = shader.addInput(inp, typ)
+        i.setNodeGraphString(ng.getName())
+        i.setOutputString(out.getName())
+
+    ss = doc.addNode("standard_surface", f"SR_{name}", "surfaceshader")
+    bind(ss, "base_color", "color3", outs["out_base"])
+    ss.addInput("base", "float").setValue(1.0)
+    bind(ss, "specular_roughness", "float", outs["out_rough"])
+    bind(ss, "normal", "vector3", outs["out_normal"])
+    if metal_out is not None:
+        bind(ss, "metalness", "float", metal_out)
+    mat = doc.addMaterialNode(f"M_{name}", ss)
+
+    usd = doc.addNode("UsdPreviewSurface", f"SR_{name}_usd", "surfaceshader")
+    bind(usd, "diffuseColor", "color3", outs["out_base"])
+    bind(usd, "roughness", "float", outs["out_rough"])
+    bind(usd, "normal", "vector3", outs["out_normal"])
+    if metal_out is not None:
+        bind(usd, "metallic", "float", metal_out)
+    doc.addMaterialNode(f"M_{name}_usd", usd)
+
+    check = mx.createDocument()
+    mx.readFromXmlString(check, mx.writeToXmlString(doc))
+    lib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
+    check.importLibrary(lib)  # validate against the standard node definitions, not just the syntax
+    ok, msg = check.validate()
+    if not ok:
+        raise InputError(f"MaterialX document for {name!r} does not validate: {msg}")
+    p = Path(path)
+    mx.writeToXmlFile(doc, str(p))
+    logger.info("wrote MaterialX %s (material %s)", p, mat.getName())
+    return p
