@@ -628,6 +628,37 @@ def point_randoms(px, py, ccx, ccy, d: Decoded, stable: bool = False):
     return rot_u, nk, kdraw
 
 
+def unique_inverse(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(key, return_inverse=True)`` for integer keys; O(N) by a presence table when their span is small."""
+    k = key.ravel()
+    if k.size == 0:
+        return np.unique(k, return_inverse=True)
+    lo = int(k.min())
+    span = int(k.max()) - lo + 1
+    if span > 4 * k.size + 4096:  # sparse keys: a sort is cheaper than a huge table
+        return np.unique(k, return_inverse=True)
+    present = np.zeros(span, dtype=bool)
+    present[k - lo] = True
+    rank = np.cumsum(present, dtype=np.int64) - 1
+    return np.flatnonzero(present) + lo, rank[k - lo]
+
+
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first index, inverse) of the distinct rows of an int64 (N, C) array, like ``np.unique(axis=0)``."""
+    lo = rows.min(axis=0)
+    span = rows.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0 ** 62:  # keys would overflow: sort the rows
+        _, first, inv = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        return first, inv.ravel()
+    key = np.zeros(rows.shape[0], dtype=np.int64)
+    for c in range(rows.shape[1]):  # mixed-radix scalar key, same order as the lexicographic row order
+        key = key * int(span[c]) + (rows[:, c] - lo[c])
+    ukey, inv = unique_inverse(key)
+    first = np.full(ukey.shape[0], rows.shape[0], dtype=np.int64)
+    np.minimum.at(first, inv, np.arange(rows.shape[0], dtype=np.int64))
+    return first, inv
+
+
 def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = False) -> Structure:
     """Deduplicate the tile neighbourhoods of all pixels and build their candidate point lists once."""
     tt = TILING_TYPES[d.tiling]
@@ -635,14 +666,14 @@ def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = Fal
     ix0, iy0 = int(ix.min()), int(iy.min())
     nyr, nq = int(iy.max()) - iy0 + 1, 16 * 36
     key = ((ix - ix0) * nyr + (iy - iy0)) * nq + q
-    ukey, code = np.unique(key.ravel(), return_inverse=True)
+    ukey, code = unique_inverse(key)
     code = code.reshape(x.shape)
     cq = ukey % nq
     ciy = (ukey // nq) % nyr + iy0
     cix = (ukey // nq) // nyr + ix0
     tcx, tcy, thx, thy = tiles_from_codes(cix, ciy, cq, tt)                       # (Ncode, 9)
     tkey = np.round(np.stack([tcx, tcy, thx, thy], -1).reshape(-1, 4) * 240.0).astype(np.int64)
-    _, first, tinv = np.unique(tkey, axis=0, return_index=True, return_inverse=True)
+    first, tinv = unique_rows(tkey)
     tinv = tinv.reshape(tcx.shape)
     ux, uy, uhx, uhy = (v.reshape(-1)[first] for v in (tcx, tcy, thx, thy))    # unique tiles (T,)
     if tt.relax:
@@ -805,7 +836,7 @@ def _march_queries(code, local0, j, st: Structure, d: Decoded, need_comp: bool):
     P = st.points
     nsec = d.n_sectors + 4
     key = (code[..., None].astype(np.int64) * MAX_CANDIDATES + local0[..., None]) * nsec + (j + 1)
-    ukey, inv = np.unique(key.ravel(), return_inverse=True)
+    ukey, inv = unique_inverse(key)
     uj = ukey % nsec - 1
     ul0 = (ukey // nsec) % MAX_CANDIDATES
     ucode = (ukey // nsec) // MAX_CANDIDATES
