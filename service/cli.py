@@ -717,5 +717,15 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+# report, export and edit live in their own modules (they import cli helpers lazily: no import cycle)
+from service import export_cmd as _export_cmd, report as _report  # noqa: E402
+
+COMMANDS.extend(_report.COMMANDS + _export_cmd.COMMANDS)
+
+from service import evaluate as _evaluate  # noqa: E402
+
+COMMANDS.append(_evaluate.add_command)
+
+
 if __name__ == "__main__":
     sys.exit(main())

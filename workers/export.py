@@ -116,10 +116,20 @@ def write_materialx(path: str | Path, name: str, base_color: str, normal: str, r
         bind(ss, "metalness", "float", metal_out)
     mat = doc.addMaterialNode(f"M_{name}", ss)
 
+    # UsdPreviewSurface takes the tangent-space normal in [-1, 1] (it applies its own normalmap node)
+    n2 = ng.addNode("multiply", "normal_x2", "vector3")
+    n2.addInput("in1", "vector3").setConnectedNode(nimg)
+    n2.addInput("in2", "float").setValue(2.0)
+    nts = ng.addNode("subtract", "normal_tangent", "vector3")
+    nts.addInput("in1", "vector3").setConnectedNode(n2)
+    nts.addInput("in2", "float").setValue(1.0)
+    out_ts = ng.addOutput("out_normal_ts", "vector3")
+    out_ts.setConnectedNode(nts)
+
     usd = doc.addNode("UsdPreviewSurface", f"SR_{name}_usd", "surfaceshader")
     bind(usd, "diffuseColor", "color3", outs["out_base"])
     bind(usd, "roughness", "float", outs["out_rough"])
-    bind(usd, "normal", "vector3", outs["out_normal"])
+    bind(usd, "normal", "vector3", out_ts)
     if metal_out is not None:
         bind(usd, "metallic", "float", metal_out)
     doc.addMaterialNode(f"M_{name}_usd", usd)

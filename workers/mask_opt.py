@@ -9,6 +9,11 @@ The paper alternates Powell on the continuous parameters with Bayesian optimisat
   (kernel counts and stripe frequency limited to the database range 0..8), so one sweep of every value of every
   entry costs ~50 evaluations, the price of a few Bayesian-optimisation steps, with no surrogate model to fit,
   no extra dependency and a deterministic result; values irrelevant under the current mixture are skipped.
+* structure moves: the period, aspect ratio and orientation set the whole layout, and a local method with small
+  steps does not jump between their basins; `structure_sweep` tries period x {1/2, 1/sqrt2, sqrt2, 2}, aspect
+  x {1/2, 2} and rotations by 45/90/135 degrees (9 evaluations) next to each discrete sweep (optional).
+* multi-start: `explore` gives a starting vector a short local search on its own small budget; the caller
+  explores several re-ranked entries (both polarities) and runs the main search from the most promising basin.
 * a budget object counts evaluations and time, caches repeated vectors and keeps the best vector ever seen, so
   any stop (budget, nlopt failure) returns the best-ever point.
 """
@@ -198,6 +203,35 @@ def discrete_sweep(budget: Budget, x0: np.ndarray, rng: np.random.Generator) -> 
     return best
 
 
+#: relative moves of the layout entries tried by `structure_sweep` (period and aspect: factors; rotation: added)
+STRUCTURE_MOVES: dict[str, tuple[float, ...]] = {
+    "resolution": (0.5, 0.7071, 1.4142, 2.0),
+    "aspect_ratio": (0.5, 2.0),
+    "rotation": (0.25, 0.5, 0.75),
+}
+
+
+def structure_sweep(budget: Budget, x0: np.ndarray, width: int) -> np.ndarray:
+    """Try large moves of the period, aspect ratio and orientation (coordinate-wise, accepting improvements)."""
+    best = pp.clip_params(x0)
+    best_loss = budget(best)
+    for name, moves in STRUCTURE_MOVES.items():
+        i = _I[name]
+        base = best.copy()
+        for m in moves:
+            cand = base.copy()
+            if name == "rotation":
+                cand[i] = (base[i] + m) % 2.0
+            elif name == "resolution":
+                cand[i] = float(np.clip(round(base[i] * m), 2, max(4, width)))
+            else:
+                cand[i] = float(np.clip(base[i] * m, *OPT_BOUNDS["aspect_ratio"]))
+            loss = budget(cand)
+            if loss < best_loss:
+                best, best_loss = pp.clip_params(cand), loss
+    return best
+
+
 @dataclass
 class OptSettings:
     """How `optimise` spends its budget."""
@@ -210,6 +244,7 @@ class OptSettings:
     seed: int = 0
     continuous_share: float = 0.6
     skip_idle_sweeps: bool = True
+    structure_moves: bool = False
 
 
 def optimise(loss: Loss, x0: np.ndarray, width: int, settings: OptSettings = OptSettings(),
@@ -232,12 +267,28 @@ def optimise(loss: Loss, x0: np.ndarray, width: int, settings: OptSettings = Opt
             if sweep or not settings.skip_idle_sweeps:
                 mid = budget.best_loss
                 x = discrete_sweep(budget, x, rng)
+                if settings.structure_moves:
+                    x = structure_sweep(budget, x, width)
                 sweep = budget.best_loss < mid      # a sweep that found nothing is skipped next round
             else:
                 sweep = True
             logger.debug("round %d: loss %.4f -> %.4f (%d evals)", r, before, budget.best_loss, budget.evaluations)
             if budget.exhausted:
                 break
+    except BudgetExhausted:
+        pass
+    return budget
+
+
+def explore(budget: Budget, x0: np.ndarray, width: int, settings: OptSettings = OptSettings()) -> Budget:
+    """Short local search from x0 on its own (small) budget: a continuous step, then the structure moves."""
+    space = ContinuousSpace.for_width(width)
+    try:
+        budget(pp.clip_params(x0))
+        x = continuous_step(budget, x0, space, max(1, budget.max_evals - budget.evaluations - 9),
+                            algorithm=settings.algorithm, step=settings.step)
+        if settings.structure_moves:
+            structure_sweep(budget, x, width)
     except BudgetExhausted:
         pass
     return budget

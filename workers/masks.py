@@ -3,15 +3,25 @@
 * `fit_pptbf_mask`: downsample the binary mask to the fit resolution (default: the database's, e.g. 512 ->
   128 px), query the index with the mask and its complement, re-rank both top-k lists at our realisation with
   the threshold T set to the target's white fraction (binarize is a percentile cut, so T is never searched);
-  the best fixes the polarity; then refine (workers.mask_opt: nlopt local search on the continuous entries
-  alternating with exhaustive discrete sweeps, best ever kept). The loss is the descriptor distance (LBP + Gram
-  + spectrum, the index's own descriptor and weights, before PCA) computed in memory: no image files. With
-  `valid` (incomplete masks of sub-layers) the descriptor statistics use only the parent's pixels.
+  optionally explore the best `starts` re-ranked entries (either polarity) with short local searches; refine the
+  most promising (workers.mask_opt: nlopt local search on the continuous entries alternating with exhaustive
+  discrete sweeps and, optionally, large period/aspect/orientation moves; best ever kept); finally compare the candidates
+  (query result, explored starts, final) on fresh realisations and return the best there (`validate`): a lower
+  loss at the fit's own realisation is often over-fitting that realisation, not a better pattern. The loss is
+  the descriptor distance (LBP + Gram + spectrum, the index's own descriptor and weights, before PCA) computed
+  in memory: no image files. With `valid` (incomplete masks of sub-layers) the descriptor statistics use only
+  the parent's pixels.
 * `fit_inpainted_mask`: the inpainting variant for sub-layers: segment the inpainted sub-material maps with a
   caller-given segmentation and fit that complete mask.
 * `sample_instances`: label each connected component of a (procedural) parent mask with a cluster drawn from
   the stored shares.
 * node types "pptbf" (HxWx1 {0,1} mask at any size/scale/seed) and "instances" (HxWxK one-hot clusters).
+
+Acceptance on random known parameters (issue 6), alignment-free by descriptor distance: a PPTBF is stochastic,
+and another realisation (shift) of the TRUE parameters has a best-shift IoU near chance, f/(2-f) for white
+fraction f (measured 0.1-0.7 at 128 px), so "IoU >= 0.8" is only reachable for the same realisation. The
+criterion is `realisation_distance(fit) <= 1.5 x realisation_distance(truth)` (fresh realisations, as a graph
+node renders them) on most targets; unrelated parameters fail it (tests/test_masks.py, bench/masks.py).
 
 No torch gradient step: the differentiable torch PPTBF costs 2-7 s per forward+backward at 64 px here against
 ~0.1 s for one numpy render + descriptor, so a gradient step is worth 30-70 derivative-free evaluations.
@@ -32,7 +42,7 @@ from pptbf_db import pptbf as pp
 
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
-from .mask_opt import Budget, OptSettings, optimise
+from .mask_opt import Budget, OptSettings, explore, optimise
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +56,16 @@ class MaskFitConfig:
 
     fit_size: width (px) the mask is fitted at (None: the index's resolution, else 128); the loss is cheap
     there (one render + descriptor ~0.05-0.3 s at 128 px) and the pattern is resolution-free afterwards.
+    starts / explore_share: re-ranked entries explored with short local searches, and the share of the
+    evaluations they get (skipped when fewer than 10 evaluations per start would be left).
+    structure_moves: large period/aspect/orientation moves after each discrete sweep.
+    (starts=3 with structure moves lowered the final loss on 4/6 random targets at 200 evaluations / 20 s,
+    but on 1/9 (1 tie) at the default 300 / 50 s, and did not improve fresh realisations: off by default.)
+    validate: fresh realisations on which the candidates (query, explored starts, final) are compared at the
+    end; the best there is returned (0: the best at the fit's own realisation). Guards against over-fitting
+    the fit's realisation; its evaluations are reserved from max_evals.
+    realisations: realisations averaged per loss evaluation (2 generalises slightly better to fresh
+    realisations at equal time in one measurement, but halves the evaluations; default 1).
     """
 
     rounds: int = 5
@@ -58,6 +78,11 @@ class MaskFitConfig:
     step: float = 0.08
     shift: tuple[float, float] = (0.0, 0.0)
     torch_threads: int | None = 1
+    starts: int = 1
+    explore_share: float = 0.35
+    structure_moves: bool = False
+    realisations: int = 1
+    validate: int = 2
 
 
 @dataclass
@@ -174,8 +199,9 @@ class MaskLoss:
     """
 
     def __init__(self, target: np.ndarray, index, valid: np.ndarray | None = None, *,
-                 shift=(0.0, 0.0)) -> None:
+                 shift=(0.0, 0.0), realisations: int = 1) -> None:
         self.target = target
+        self.realisations = max(1, int(realisations))
         self.valid = valid
         self.index = index
         self.shift = tuple(shift)
@@ -207,9 +233,26 @@ class MaskLoss:
         """Descriptor distance of a bool mask (same size as the target) to the target."""
         return float(np.linalg.norm(self.describe(mask) - self._target_desc))
 
+    def fresh(self, params: np.ndarray, complement: bool = False, n: int = 2,
+              threshold_from_target: bool = True) -> float:
+        """Mean descriptor distance of `n` realisations far from any the fit or the tests use (validation)."""
+        p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
+        total = 0.0
+        for k in range(max(1, int(n))):
+            s = (self.shift[0] + 41.3 + 7.9 * k, self.shift[1] + 37.1 + 6.1 * k)
+            m = pp.render_mask(p, self.width, self.height, shift=s, ref_width=self.width)
+            total += self.of_mask(~m if complement else m)
+        return total / max(1, int(n))
+
     def __call__(self, params: np.ndarray, complement: bool = False, threshold_from_target: bool = True) -> float:
-        """Loss of a parameter vector."""
-        return self.of_mask(self.render(params, complement, threshold_from_target))
+        """Loss of a parameter vector: the mean over `realisations` shifts (the first is the loss's own shift)."""
+        total = self.of_mask(self.render(params, complement, threshold_from_target))
+        for k in range(1, self.realisations):
+            p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
+            s = (self.shift[0] + 3.7 * k, self.shift[1] + 5.3 * k)   # far away: an independent realisation
+            m = pp.render_mask(p, self.width, self.height, shift=s, ref_width=self.width)
+            total += self.of_mask(~m if complement else m)
+        return total / self.realisations
 
 
 def _raw_describer(index) -> Callable | None:
@@ -232,6 +275,21 @@ def _raw_describer(index) -> Callable | None:
         return np.asarray(pca.standardise(raw), dtype=np.float64).ravel()
 
     return describe
+
+
+def realisation_distance(loss: MaskLoss, params: np.ndarray, complement: bool = False, n: int = 3,
+                         seed: int = 0) -> float:
+    """Mean descriptor distance to `loss`'s target of `n` fresh realisations of params (shifts 8-16 reference
+    widths away, drawn from `seed`, threshold from the target): the alignment-free score of a stochastic mask as
+    a graph node renders it (a new realisation, not the one fitted). For the true parameters of a synthetic
+    target this is the "truth floor": what a perfect fit scores."""
+    rng = np.random.default_rng(seed)
+    p = loss.with_threshold(params, complement)
+    total = 0.0
+    for s in rng.uniform(8.0, 16.0, size=(max(1, int(n)), 2)):
+        m = pp.render_mask(p, loss.width, loss.height, shift=(float(s[0]), float(s[1])), ref_width=loss.width)
+        total += loss.of_mask(~m if complement else m)
+    return total / max(1, int(n))
 
 
 @contextmanager
@@ -324,7 +382,7 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
     q_neg = index.query(~target, k=cfg.top_k, valid=valid_s)
     if not q_pos and not q_neg:
         raise InputError("index: the PPTBF database returned no match (is it empty?)")
-    loss = MaskLoss(target, index, valid_s, shift=cfg.shift)
+    loss = MaskLoss(target, index, valid_s, shift=cfg.shift, realisations=cfg.realisations)
     # "the query result alone": the index's nearest entry over both polarities, rendered verbatim
     q_compl = bool(q_neg and (not q_pos or q_neg[0].distance < q_pos[0].distance))
     q_best = (q_neg if q_compl else q_pos)[0]
@@ -340,20 +398,44 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
             scored.append((loss(p, compl), compl, p, mt))
             n0 += 1
             history.append(min(history[-1], scored[-1][0]))
-    best_loss, complement, x0, start = min(scored, key=lambda s: s[0]) if scored else (
+    settings = OptSettings(rounds=cfg.rounds, max_evals=cfg.max_evals, time_budget_s=cfg.time_budget_s,
+                           algorithm=cfg.algorithm, step=cfg.step, seed=seed, structure_moves=cfg.structure_moves)
+    scored.sort(key=lambda s: s[0])
+    best_loss, complement, x0, start = scored[0] if scored else (
         loss_query, q_compl, np.asarray(q_best.params, np.float64), q_best)
-    budget = Budget(lambda p: loss(p, complement), cfg.max_evals - n0, t0 + cfg.time_budget_s)
+    n_explore, explored = 0, []
+    n_starts = min(cfg.starts, len(scored))
+    reserve = max(0, int(cfg.validate)) * (n_starts + 2)
+    reserve = reserve if cfg.max_evals - n0 - reserve >= 20 else 0          # too small a budget: no validation
+    per_eval = (time.perf_counter() - t0) / max(1, n0)
+    deadline = t0 + cfg.time_budget_s - reserve * per_eval
+    each = int(cfg.explore_share * (cfg.max_evals - n0 - reserve) / max(1, n_starts))
+    if n_starts > 1 and each >= 10:   # multi-start: short searches from the best re-ranked entries
+        for l0, compl, p, mt in scored[:cfg.starts]:
+            b = Budget(lambda q, c=compl: loss(q, c), each, deadline)
+            b.seed(p, l0)
+            explore(b, p, w, settings)
+            n_explore += b.evaluations
+            history += b.history
+            explored.append((b.best_loss, compl, b.best_params, mt))
+        best_loss, complement, x0, start = min(explored, key=lambda s: s[0])
+    budget = Budget(lambda p: loss(p, complement), cfg.max_evals - n0 - n_explore - reserve, deadline)
     budget.seed(x0, best_loss)
-    settings = OptSettings(rounds=cfg.rounds, max_evals=budget.max_evals, time_budget_s=cfg.time_budget_s,
-                           algorithm=cfg.algorithm, step=cfg.step, seed=seed)
+    settings.max_evals = budget.max_evals
     optimise(budget.loss, x0, w, settings, budget=budget)
-    best, loss_final = budget.best_params, budget.best_loss
     history += budget.history
-    if loss_query <= loss_final:  # the verbatim query result is still the best: keep it (best ever)
-        best, loss_final, complement = np.array(q_best.params, dtype=np.float64), loss_query, q_compl
-        start = q_best
+    cands = [(budget.best_loss, complement, budget.best_params, start, True)]
+    cands += [(l, c, p, mt, True) for l, c, p, mt in explored]
+    cands = [c for c in cands if c[0] < loss_query] + [(loss_query, q_compl, q_best.params, q_best, False)]
+    n_val, val = 0, None
+    if reserve:   # the candidate best on fresh realisations (never one worse than the query at our realisation)
+        best, loss_final, complement, start, val, n_val = _validate(loss, cands, cfg.validate)
+        history += [history[-1]] * n_val
+    else:         # best ever at our realisation (the verbatim query result when nothing beat it)
+        loss_final, complement, best, start, _ = cands[0]
+        best = np.array(best, dtype=np.float64)
     secs = time.perf_counter() - t0
-    evals = n0 + budget.evaluations
+    evals = n0 + n_explore + budget.evaluations + n_val
     logger.info("PPTBF mask fit %dx%d: loss %.4f (query) -> %.4f in %d evals, %.1f s%s", w, h, loss_query,
                 loss_final, evals, secs, " (complement)" if complement else "")
     return MaskFit(params=pp.clip_params(best), complement=bool(complement), loss_query=float(loss_query),
@@ -361,8 +443,24 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
                    history=[float(x) for x in np.minimum.accumulate(history)], fit_size=(w, h), shift=tuple(cfg.shift),
                    entry_id=getattr(start, "entry_id", None),
                    meta={"white_fraction": loss.white, "query_distance": float(q_best.distance),
-                         "query_complement": q_compl, "rerank_loss": float(min((s[0] for s in scored),
-                                                                                 default=loss_query))})
+                         "query_complement": q_compl, "validation_loss": val,
+                         "rerank_loss": float(min((s[0] for s in scored), default=loss_query))})
+
+
+def _validate(loss: MaskLoss, cands: list, n: int):
+    """Pick the candidate (own loss, complement, params, start, threshold_from_target) with the lowest mean
+    distance over `n` fresh realisations; returns (params, own loss, complement, start, that distance, evals)."""
+    seen, best, evals = set(), None, 0
+    for own, compl, p, start, from_target in cands:
+        key = (bool(compl), np.round(np.asarray(p, np.float64), 9).tobytes())
+        if key in seen:
+            continue
+        seen.add(key)
+        v = loss.fresh(p, compl, n, threshold_from_target=from_target)
+        evals += n
+        if best is None or v < best[4]:
+            best = (np.array(p, dtype=np.float64), float(own), bool(compl), start, float(v))
+    return (*best, evals)
 
 
 def fit_inpainted_mask(inpainted_maps: dict[str, np.ndarray], segment: Callable[[dict[str, np.ndarray]], np.ndarray],

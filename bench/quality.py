@@ -1,0 +1,18 @@
+"""Quality scorecard of a finished job (issue 9 part 1): the same as ``proceduralize evaluate JOB``.
+
+    python bench/quality.py /tmp/job_small                 # prints the table, writes <job>/evaluation/metrics.*
+    python bench/quality.py out/quick --no-render --out /tmp/scores
+
+Every option of ``proceduralize evaluate`` is accepted (``--help``); see workers/evaluate.py for the protocol.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from service.cli import main  # noqa: E402
+
+if __name__ == "__main__":
+    sys.exit(main(["evaluate", *sys.argv[1:]]))
