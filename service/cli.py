@@ -711,6 +711,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # output piped into e.g. `head`, which closed early: not an error of ours
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at interpreter exit
+        return 0
     except Exception as exc:  # noqa: BLE001 - the CLI reports, logs the traceback with -v, and fails
         logger.debug("unexpected failure", exc_info=True)
         print(f"error: {type(exc).__name__}: {exc} (run with -vv for the traceback)", file=sys.stderr)
@@ -718,13 +721,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # report, export and edit live in their own modules (they import cli helpers lazily: no import cycle)
-from service import export_cmd as _export_cmd, report as _report  # noqa: E402
+from service import evaluate as _evaluate, export_cmd as _export_cmd, report as _report  # noqa: E402
 
-COMMANDS.extend(_report.COMMANDS + _export_cmd.COMMANDS)
-
-from service import evaluate as _evaluate  # noqa: E402
-
-COMMANDS.append(_evaluate.add_command)
+COMMANDS.extend(_report.COMMANDS + _export_cmd.COMMANDS + [_evaluate.add_command])
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "me
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
                  "noise", "masks", "recompose", "stages"}
 DEFAULT_KEYS = MATERIAL_KEYS - {"name", "output", *MAP_KEYS}
-OUTPUT_KEYS = {"sizes", "seeds", "scales", "preview", "bits"}
+OUTPUT_KEYS = {"sizes", "seeds", "scales", "preview", "bits", "materialx"}
 DEBUG_KEYS = {"crash_once", "sleep"}
 
 
@@ -69,6 +69,7 @@ class OutputSpec:
     scales: list[float] = field(default_factory=lambda: [1.0])
     preview: bool = True
     bits: int = 8
+    materialx: bool = True   # a material.mtlx (standard_surface + UsdPreviewSurface) beside each map set
 
 
 @dataclass
@@ -99,7 +100,7 @@ class MaterialSpec:
             "decompose": _jsonable(self.decompose),
             "outputs": {"sizes": [list(s) for s in self.outputs.sizes], "seeds": list(self.outputs.seeds),
                         "scales": list(self.outputs.scales), "preview": self.outputs.preview,
-                        "bits": self.outputs.bits},
+                        "bits": self.outputs.bits, "materialx": self.outputs.materialx},
             "seed": self.seed, "noise": _jsonable(self.noise), "masks": _jsonable(self.masks),
             "recompose": _jsonable(self.recompose), "stages": self.stages,
         }
@@ -326,11 +327,12 @@ def _outputs(v: Any, where: str, probs: _Problems) -> OutputSpec:
             probs.add(f"{where}.scales", f"must be a non-empty list of numbers > 0, got {sc!r}")
         else:
             out.scales = [float(s) for s in sc]
-    if "preview" in v:
-        if not isinstance(v["preview"], bool):
-            probs.add(f"{where}.preview", "must be true or false")
-        else:
-            out.preview = v["preview"]
+    for flag in ("preview", "materialx"):
+        if flag in v:
+            if not isinstance(v[flag], bool):
+                probs.add(f"{where}.{flag}", "must be true or false")
+            else:
+                setattr(out, flag, v[flag])
     if "bits" in v:
         if v["bits"] not in (8, 16):
             probs.add(f"{where}.bits", f"must be 8 or 16, got {v['bits']!r}")

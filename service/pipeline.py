@@ -391,6 +391,22 @@ def _write_maps(maps: dict[str, np.ndarray], out: Path, bits: int) -> list[Path]
     return files
 
 
+def _write_materialx(maps: dict[str, np.ndarray], folder: Path, name: str, bits: int) -> list[Path]:
+    """A MaterialX document over the written maps (albedo.png is sRGB, normal.png OpenGL-encoded), plus a
+    glTF ORM texture when the material has a metallic map."""
+    from workers.export import pack_orm, write_materialx
+    from workers.maps import write_image
+
+    files = []
+    orm = None
+    if "metallic" in maps:
+        orm = write_image(folder / "orm.png", pack_orm(maps["roughness"], maps["metallic"]), bits=bits)
+        files.append(orm)
+    files.append(write_materialx(folder / "material.mtlx", safe_name(name), "albedo.png", "normal.png",
+                                 "roughness.png", orm.name if orm else None))
+    return files
+
+
 def output_renders(material: dict) -> list[str]:
     """Render tags of the output stage, one work item each: ``WxH_seedS[_scaleX]`` for sizes x seeds x scales."""
     outs = material.get("outputs", {})
@@ -426,6 +442,8 @@ def stage_output(call: dict, resources: Any = None) -> dict:
         from workers.render import preview_image
 
         files.append(write_image(folder / "preview.png", preview_image(maps), bits=8))
+    if outs.get("materialx", True):
+        files += _write_materialx(maps, folder, m["name"], int(outs.get("bits", 8)))
     return {"files": files, "info": {"render": tag, "seconds": round(time.perf_counter() - t0, 3)}}
 
 

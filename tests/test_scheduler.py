@@ -341,6 +341,15 @@ def test_split_material_runs_masks_on_actors_and_renders(ray_session, materials_
     assert out["albedo"].shape == (48, 96, 3) and out["normal"].shape == (48, 96, 3)
     for tag in ("64x64_seed0", "64x64_seed5", "96x48_seed0", "96x48_seed5"):
         assert (mdir / "maps" / tag / "albedo.png").is_file()
+    # each map set carries a MaterialX document whose image nodes point at files that are there
+    import MaterialX as mx
+
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(mdir / "maps" / "96x48_seed5" / "material.mtlx"))
+    files = {nd.getInputValue("file") for nd in doc.traverseTree() if nd.getCategory() == "image"}
+    assert files == {"albedo.png", "normal.png", "roughness.png"}
+    assert all((mdir / "maps" / "96x48_seed5" / f).is_file() for f in files)
+    assert {m.getName() for m in doc.getMaterialNodes()} == {f"M_{n}", f"M_{n}_usd"}
     report_json = json.loads((mdir / "recompose" / "report.json").read_text())
     assert report_json["loss_after"] <= report_json["loss_before"] + 1e-9
 
