@@ -28,6 +28,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
     ap.add_argument("--torch-size", type=int, default=256, help="0 to skip torch")
     ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    ap.add_argument("--threads", type=int, default=None, help="numpy chunk threads (default: pp.default_threads())")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     cols = [f"numpy {s}" for s in args.sizes] + ([f"torch {args.torch_size}"] if args.torch_size else [])
@@ -35,13 +36,14 @@ def main(argv=None) -> None:
         import torch
 
         pp.evaluate_torch(torch.tensor(pp.sample_params(rng, 1)[0]), 64, device=args.device)  # warm-up
-    print(f"{'family':<10} " + " ".join(f"{c:>11}" for c in cols) + "   (median seconds)")
+    threads = pp.default_threads() if args.threads is None else args.threads
+    print(f"{'family':<10} " + " ".join(f"{c:>11}" for c in cols) + f"   (median seconds, numpy on {threads} thread(s))")
     for fam, types in pp.TILING_FAMILIES.items():
         params = pp.sample_params(rng, args.n, ref_width=128)
         params[:, 1] = rng.choice(types, size=args.n)
         row = []
         for s in args.sizes:
-            row.append(np.median([_time(lambda p=p: pp.evaluate(p, s, ref_width=128)) for p in params]))
+            row.append(np.median([_time(lambda p=p: pp.evaluate(p, s, ref_width=128, threads=args.threads)) for p in params]))
         if args.torch_size:
             import torch
 

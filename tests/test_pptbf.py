@@ -265,6 +265,19 @@ def test_determinism_and_shift_realisation():
     assert abs(a.mean() - c.mean()) < 0.3 * a.mean()           # same statistics, new realisation
 
 
+def test_threaded_chunks_give_the_same_field(monkeypatch):
+    """Row chunks evaluated on threads (and chunking itself) do not change a single value."""
+    p = make_params(tiling=7, jitter=0.8, resolution=16, feature_mixture=2, window_blend=0.4,
+                    distortion_base=0.01, distortion_amplitude=0.6, distortion_frequency=0.8)
+    whole = pp.evaluate(p, 96, threads=1)
+    monkeypatch.setattr(pp, "CHUNK_ELEMS", 2048)   # many small chunks
+    assert pp._chunk_rows(96, 18) < 8
+    assert np.array_equal(pp.evaluate(p, 96, threads=1), whole)
+    assert np.array_equal(pp.evaluate(p, 96, threads=3), whole)
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert pp.default_threads() == 2
+
+
 def test_ref_width_extends_and_pixel_scale_zooms():
     p = make_params(tiling=8, jitter=0.7, resolution=16, feature_mixture=1, window_blend=0.5, window_shape=1,
                     distortion_base=0.02, distortion_amplitude=0.5, distortion_frequency=0.7)
