@@ -567,7 +567,7 @@ def _cmd_results(args) -> int:
         job = store.job(name)
         mats = store.materials(name)
         arts = store.artefacts(name)
-    out = Path(job["output"])
+        out = store.output_root(name)
     docs = []
     for m in mats:
         mine = [a for a in arts if a["material"] == m["name"]]

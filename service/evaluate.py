@@ -133,12 +133,8 @@ def _skip_reason(m: dict, mdir: Path) -> str | None:
 
 
 def job_root(store, job: str) -> Path:
-    """The job's output folder: the database's folder if it holds the material folders (a moved or copied job),
-    else the output recorded in the job row."""
-    here = Path(store.path).resolve().parent
-    if any((here / m["output"]).is_dir() for m in store.materials(job)):
-        return here
-    return Path(store.job(job)["output"])
+    """The job's output folder (see Store.output_root: a moved or copied job folder is found where it is)."""
+    return store.output_root(job)
 
 
 def evaluate_job(store, job: str, out: Path | None = None, seed: int = 0, seed_offset: int = SEED_OFFSET,

@@ -496,6 +496,7 @@ def build_report(store, job_name: str, out: Path | None = None, options: ReportO
         from workers.errors import InputError
 
         raise InputError(f"no job named {job_name!r} in the database")
+    job = dict(job, output=str(store.output_root(job_name)))  # where the files are now (a copied job too)
     root = Path(out) if out is not None else Path(job["output"]) / "report"
     root.mkdir(parents=True, exist_ok=True)
     ref = job_ref or job["output"]

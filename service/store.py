@@ -296,6 +296,15 @@ class Store:
         rows = list(self.db["jobs"].rows_where("name = ?", [name]))
         return rows[0] if rows else None
 
+    def output_root(self, job: str) -> Path:
+        """The job's output folder: this database's own folder when it holds the material folders (a job folder
+        moved or copied elsewhere), else the folder recorded when the job ran."""
+        here = self.path.resolve().parent
+        if any((here / m["output"]).is_dir() for m in self.materials(job)):
+            return here
+        row = self.job(job)
+        return Path(row["output"]) if row else here
+
     def materials(self, job: str) -> list[dict]:
         """A job's material rows in insertion order."""
         return list(self.db["materials"].rows_where("job = ?", [job], order_by="rowid"))

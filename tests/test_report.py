@@ -132,6 +132,23 @@ def test_report_shows_metrics_and_the_parameter_edit(small_job, tmp_path):
     assert "mean albedo (linear)" in html and edit.path in html
 
 
+def test_copied_job_folder_reports_and_lists_its_own_files(small_job, tmp_path, capsys):
+    """A job folder copied elsewhere (the database records absolute paths) is read where it now is."""
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(small_job, moved, ignore=shutil.ignore_patterns("report", "evaluation"))
+    assert main(["results", str(moved), "--json"]) == 1          # one material failed on purpose
+    doc = json.loads(capsys.readouterr().out)
+    good = next(m for m in doc["materials"] if m["name"] == GOOD)
+    assert good["material_json"].startswith(str(moved)) and Path(good["material_json"]).is_file()
+    assert all(Path(p).is_dir() and p.startswith(str(moved)) for p in good["maps"])
+    assert main(["report", str(moved)]) == 0
+    assert (moved / "report" / "index.html").is_file() and not (small_job / "report" / "moved").exists()
+    refs = _refs(moved / "report" / f"{GOOD}.html")
+    assert refs.imgs and all((moved / "report" / ref).is_file() for ref in refs.imgs)
+
+
 def test_report_bad_job_exits_2(tmp_path, capsys):
     assert main(["report", str(tmp_path / "nothing")]) == 2
     assert "not found" in capsys.readouterr().err
