@@ -615,6 +615,8 @@ def _add_db(sub) -> None:
     r.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     r.add_argument("--chunk", type=int, default=None, metavar="C", help="entries per Ray task (default 100)")
     r.add_argument("--dim", type=int, default=None, help="PCA dimension of the descriptors (default 64)")
+    r.add_argument("--regular-share", type=float, default=None, metavar="F",
+                   help="share of nearly regular layouts: low jitter, no distortion (default 0)")
     r.add_argument("--float16", action="store_true", help="store reduced descriptors as float16 (smaller)")
     r.add_argument("--drop-raw", action="store_true", help="delete the raw descriptor chunks after the PCA")
     r.add_argument("--fresh", action="store_true",
@@ -635,7 +637,7 @@ def _cmd_db_rebuild(args) -> int:
     from pptbf_db.index import default_database_path
 
     cfg = build.BuildConfig(seed=args.seed, reduced_dtype="float16" if args.float16 else "float32")
-    for name in ("size", "resolution", "chunk"):
+    for name in ("size", "resolution", "chunk", "regular_share"):
         if getattr(args, name) is not None:
             setattr(cfg, name, getattr(args, name))
     if args.dim is not None:

@@ -16,7 +16,8 @@ from workers.errors import DatabaseError
 
 pytestmark = pytest.mark.ray
 
-TINY = BuildConfig(size=240, resolution=64, seed=11, chunk=30, descriptor=DescriptorConfig(dim=32))
+TINY = BuildConfig(size=240, resolution=64, seed=11, chunk=30, descriptor=DescriptorConfig(dim=32),
+                   regular_share=0.25)
 N_CHUNKS = 8
 STOP_AFTER = 3
 
@@ -64,7 +65,9 @@ def test_uninterrupted_build(builds):
     assert sorted(p.name for p in folder.glob("raw_*.npy")) == [f"raw_{c:04d}.npy" for c in range(N_CHUNKS)]
     # the parameters are the seeded sample, in order
     np.testing.assert_array_equal(np.load(folder / "params.npy"),
-                                  pptbf.sample_params(np.random.default_rng(11), TINY.size, ref_width=64))
+                                  pptbf.sample_params(np.random.default_rng(11), TINY.size, ref_width=64,
+                                                      regular_share=TINY.regular_share))
+    assert TINY.regular_share == 0.25 and meta["regular_share"] == 0.25
     assert set(_chunk_runs(folder).values()) == {1}
 
 

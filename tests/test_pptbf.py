@@ -69,6 +69,24 @@ def test_sample_params_cover_space_and_skip_flat_combination():
     assert np.array_equal(s, again)
 
 
+def test_sample_params_regular_share():
+    """A share of nearly regular layouts, spread evenly; share 0 draws exactly the old vectors."""
+    PI = pp.PARAM_INDEX
+    old = pp.sample_params(np.random.default_rng(0), 2000, ref_width=128)
+    assert np.array_equal(pp.sample_params(np.random.default_rng(0), 2000, ref_width=128, regular_share=0.0), old)
+    s = pp.sample_params(np.random.default_rng(0), 2000, ref_width=128, regular_share=0.25)
+    regular = (s[:, PI["jitter"]] <= 0.1) & (s[:, PI["distortion_amplitude"]] <= 0.05) \
+        & (s[:, PI["distortion_base"]] <= 0.005)
+    old_regular = (old[:, PI["jitter"]] <= 0.1) & (old[:, PI["distortion_amplitude"]] <= 0.05)
+    assert old_regular.mean() < 0.02 and 0.25 <= regular.mean() < 0.27
+    assert 0.2 < regular[:1000].mean() < 0.3                     # every part of a build gets its share
+    assert set(np.unique(s[regular, 1]).astype(int)) == set(range(18))
+    others = [i for i in range(29) if i not in (PI["jitter"], PI["distortion_amplitude"], PI["distortion_base"])]
+    assert np.array_equal(s[:, others], old[:, others])           # only those three parameters change
+    with pytest.raises(ValueError, match="regular_share"):
+        pp.sample_params(np.random.default_rng(0), 10, regular_share=1.5)
+
+
 def test_bad_params_raise_clear_errors():
     with pytest.raises(ValueError, match="29"):
         pp.evaluate(np.zeros(5), 16)

@@ -61,6 +61,7 @@ class MaskFitConfig:
     structure_moves: large period/aspect/orientation moves after each discrete sweep.
     (starts=3 with structure moves lowered the final loss on 4/6 random targets at 200 evaluations / 20 s,
     but on 1/9 (1 tie) at the default 300 / 50 s, and did not improve fresh realisations: off by default.)
+    incomplete: how the service fits a sub-layer's (incomplete) mask; fit_pptbf_mask itself takes `valid`.
     validate: fresh realisations on which the candidates (query, explored starts, final) are compared at the
     end; the best there is returned (0: the best at the fit's own realisation). Guards against over-fitting
     the fit's realisation; its evaluations are reserved from max_evals.
@@ -83,6 +84,8 @@ class MaskFitConfig:
     structure_moves: bool = False
     realisations: int = 1
     validate: int = 2
+    incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
+    #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
 
 @dataclass
