@@ -1,7 +1,7 @@
 """Batch throughput: materials per hour of one job on a local Ray with 1 vs 2 (or more) worker CPUs.
 
-    python bench/service.py                          # 4 materials, working size 128, every available stage
-    python bench/service.py --cpus 1 2 4 --materials 6 --working-size 256 --stages load decompose noise
+    python bench/throughput.py                          # 4 materials, working size 128, every available stage
+    python bench/throughput.py --cpus 1 2 4 --materials 6 --working-size 256 --stages load decompose noise
 
 Each configuration runs the same job from scratch (fresh output folder, fresh Ray) and prints a table:
 wall seconds, materials/hour, stage items run, and the summed per-stage seconds from the job database.
