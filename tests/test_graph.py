@@ -170,6 +170,8 @@ def test_seed_and_rng_are_deterministic():
     ({"format": "proceduralize/1", "nodes": [{"id": "c", "type": "constant", "params": {"value": 1}},
                                              {"id": "c", "type": "constant", "params": {"value": 2}}], "maps": []},
      "duplicate node id 'c'"),
+    ({"format": "proceduralize/1", "nodes": [{"id": "blend_root.0", "type": "constant", "params": {"value": 1}}],
+      "maps": []}, "contain no '.'"),
 ])
 def test_malformed_documents_rejected(tmp_path, doc, pattern):
     p = tmp_path / "bad.json"
@@ -233,6 +235,8 @@ def test_node_errors_are_graph_errors():
         evaluate(m, 4, 4)
     with pytest.raises(GraphError, match="duplicate node id"):
         m.add("c", "constant", {"value": 1})
+    with pytest.raises(GraphError, match="contain no '.'"):   # edit paths are node.param: ids cannot hold dots
+        m.add("mask_root.0", "constant", {"value": 1})
 
 
 def test_encode_decode_arrays():

@@ -356,11 +356,13 @@ def test_split_material_runs_masks_on_actors_and_renders(ray_session, materials_
 
 def test_sub_layer_mask_by_the_inpainting_variant(ray_session, materials_dir, tmp_path, tiny_pptbf_db):
     """masks.incomplete = "inpaint": a nested split's mask is fitted on the completed, re-segmented maps
-    (whole image), and the fit records the lattice it found; the top-level mask is fitted as usual."""
-    doc = _doc("inp", [_material("castle_brick_broken_06")], stages=["load", "decompose", "masks"],
-               pptbf_database=str(tiny_pptbf_db))
+    (whole image), and the fit records the lattice it found; the top-level mask is fitted as usual; the
+    nested tree recomposes (tree ids with dots become graph ids without) and evaluates."""
+    doc = _doc("inp", [_material("castle_brick_broken_06")],
+               stages=["load", "decompose", "noise", "masks", "recompose"], pptbf_database=str(tiny_pptbf_db))
     doc["defaults"].update(decompose={"mode": "auto", "layers": 2, "children": {"0": {"layers": 2}}},
-                           masks={"max_evals": 8, "rounds": 1, "time_budget_s": 10.0, "incomplete": "inpaint"})
+                           masks={"max_evals": 8, "rounds": 1, "time_budget_s": 10.0, "incomplete": "inpaint"},
+                           recompose={"iterations": 2})
     man, report = _run(doc, tmp_path)
     assert report.exit_code == 0, report.errors
     mdir = man.output / "castle_brick_broken_06"
@@ -370,6 +372,11 @@ def test_sub_layer_mask_by_the_inpainting_variant(ray_session, materials_dir, tm
     inp = fits["root.0.0"]["inpaint"]
     assert 0.0 < inp["white_fraction"] < 1.0 and 0.0 <= inp["lattice_fill_share"] <= 1.0
     assert fits["root.0.0"]["parent"] == "root.0"
+    from workers import graph
+
+    mat = graph.load(mdir / "recompose" / "material.json")
+    assert {"blend_root_albedo", "blend_root_0_albedo"} <= set(mat.nodes)
+    assert graph.evaluate(mat, 48, 32, seed=3)["albedo"].shape == (32, 48, 3)
     doc["defaults"]["masks"]["incomplete"] = "guess"   # a bad value fails the material with a clear error
     _, bad = _run(dict(doc, job=dict(doc["job"], name="inp2", output="out/inp2")), tmp_path)
     assert bad.exit_code == 1 and "masks.incomplete" in str(bad.errors)

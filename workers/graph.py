@@ -313,9 +313,11 @@ class ProceduralMaterial:
             raise GraphError(f"no node with id {node_id!r}") from None
 
     def add(self, node_id: str, type_name: str, params: dict | None = None, **inputs: str) -> str:
-        """Add a node and return its id."""
+        """Add a node and return its id (no dots: parameter paths are ``node.param.index``)."""
         if node_id in self.nodes:
             raise GraphError(f"duplicate node id {node_id!r}")
+        if not node_id or "." in node_id:
+            raise GraphError(f"node id {node_id!r}: must be non-empty and contain no '.' (paths use it)")
         self.nodes[node_id] = {"id": node_id, "type": type_name, "params": params or {}, "inputs": dict(inputs)}
         return node_id
 
@@ -343,6 +345,8 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
             raise GraphError(f"{source}: nodes[{i}] needs string 'id' and 'type'")
         if n["id"] in nodes:
             raise GraphError(f"{source}: duplicate node id {n['id']!r}")
+        if not n["id"] or "." in n["id"]:
+            raise GraphError(f"{source}: node id {n['id']!r} must be non-empty and contain no '.'")
         t = NODE_TYPES.get(n["type"])
         if t is None:
             raise GraphError(f"{source}: node {n['id']!r} has unknown type {n['type']!r} (known: {sorted(NODE_TYPES)})")

@@ -69,7 +69,8 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
     node); ``mask_nodes[child.id]`` the graph node (1-channel mask, e.g. ``pptbf`` or ``channel`` of
     ``instances``) giving that child's mask inside its parent. ``maps`` defaults to the maps every leaf provides
     (order albedo, roughness, height, metallic). With a height map, a ``normal`` output ``from_height`` with
-    ``height_strength`` (and ``tilt``) is declared. Internal node ``n`` and map ``m`` get id ``{prefix}_{n}_{m}``.
+    ``height_strength`` (and ``tilt``) is declared. Internal node ``n`` and map ``m`` get id ``{prefix}_{n}_{m}``
+    (dots of tree ids become underscores: graph ids cannot hold dots).
     """
     leaves = tree.leaves()
     for leaf in leaves:
@@ -98,7 +99,7 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
         for i, child in enumerate(node.children):
             ins[f"mask{i}"] = mask_nodes[child.id]
             ins[f"child{i}"] = build(child, m)
-        return material.add(f"{prefix}_{node.id}_{m}", "blend",
+        return material.add(f"{prefix}_{node.id.replace('.', '_')}_{m}", "blend",
                             {"sigmas": [float(blend_sigma)] * len(node.children)}, **ins)
 
     existing = {e["name"] for e in material.maps}
