@@ -163,12 +163,11 @@ def test_spec_hash_tracks_results_not_debug_or_stage_choice(tmp_path):
     assert validate(changed, root=tmp_path).materials[0].spec_hash() != h0
 
 
-def test_example_manifest_is_valid():
-    ex = Path(__file__).resolve().parents[1] / "examples" / "manifest.toml"
-    if not ex.is_file():
-        pytest.skip("examples/manifest.toml not written yet")
+@pytest.mark.parametrize("name,count", [("manifest.toml", 3), ("quick.toml", 1), ("all_materials.toml", 6)])
+def test_example_manifests_are_valid(name, count):
+    ex = Path(__file__).resolve().parents[1] / "examples" / name
     man = load_manifest(ex)
-    assert len(man.materials) == 3
+    assert len(man.materials) == count
     for m in man.materials:
         for spec in m.maps.values():
             assert spec.file.is_file(), spec.file
