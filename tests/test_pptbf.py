@@ -296,6 +296,28 @@ def test_threaded_chunks_give_the_same_field(monkeypatch):
     assert pp.default_threads() == 2
 
 
+def test_march_memo_reuses_border_radii_with_identical_result(monkeypatch):
+    """Cellular-window border radii looked up from the previous row chunk: same field, most keys reused when
+    cells span many chunks (a zoomed render)."""
+    p = make_params(tiling=0, jitter=0.5, resolution=8, window_shape=2, window_blend=0.6, window_larp=0.3)
+    assert pp.uses_cellular(pp.decode(p))
+    monkeypatch.setattr(pp, "CHUNK_ELEMS", 4096)
+    orig = pp.MarchMemo.lookup
+    stats = {"keys": 0, "hits": 0}
+
+    def counting(self, ukey):
+        found = orig(self, ukey)
+        stats["keys"] += ukey.size
+        stats["hits"] += 0 if found is None else int(found[0].sum())
+        return found
+
+    monkeypatch.setattr(pp.MarchMemo, "lookup", counting)
+    with_memo = pp.evaluate(p, 96, pixel_scale=4.0, threads=1)
+    assert stats["hits"] > 0.5 * stats["keys"], stats
+    monkeypatch.setattr(pp.MarchMemo, "lookup", lambda self, ukey: None)
+    assert np.array_equal(pp.evaluate(p, 96, pixel_scale=4.0, threads=1), with_memo)
+
+
 def test_ref_width_extends_and_pixel_scale_zooms():
     p = make_params(tiling=8, jitter=0.7, resolution=16, feature_mixture=1, window_blend=0.5, window_shape=1,
                     distortion_base=0.02, distortion_amplitude=0.5, distortion_frequency=0.7)
