@@ -132,18 +132,13 @@ def _skip_reason(m: dict, mdir: Path) -> str | None:
     return None
 
 
-def job_root(store, job: str) -> Path:
-    """The job's output folder (see Store.output_root: a moved or copied job folder is found where it is)."""
-    return store.output_root(job)
-
-
 def evaluate_job(store, job: str, out: Path | None = None, seed: int = 0, seed_offset: int = SEED_OFFSET,
                  config: "EvalConfig | None" = None, materials: list[str] | None = None) -> JobEvaluation:
     """Score every material of ``job`` in ``store``; write the CSV/JSON files; never stop at a bad material."""
     from workers.errors import InputError, ProceduralizeError
 
     t0 = time.perf_counter()
-    root = job_root(store, job)
+    root = store.output_root(job)   # where the files are now (a moved or copied job folder too)
     ev = JobEvaluation(job=job, output=Path(out) if out else root / "evaluation")
     known = [m["name"] for m in store.materials(job)]
     unknown = sorted(set(materials or ()) - set(known))

@@ -321,20 +321,14 @@ def stage_noise(call: dict, resources: Any = None) -> dict:
 
 
 def _inpainted_target(mdir: Path, parent, node) -> tuple[np.ndarray, dict]:
-    """The inpainting variant for a sub-layer: complete the working maps outside the parent mask
-    (workers.inpaint.periodic_inpaint), label the completed pixels like the parent's children, keep the node's."""
-    from workers import inpaint
+    """The inpainting variant for a sub-layer (workers.inpaint.complete_child_mask over the working maps)."""
+    from workers.inpaint import complete_child_mask
 
     mat = load_working_material(mdir)
     maps = {k: v for k, v in (("albedo", mat.albedo), ("height", mat.height), ("roughness", mat.roughness))
             if v is not None}
-    filled, info = inpaint.periodic_inpaint(maps, parent.mask)
-    labels = np.zeros(parent.mask.shape, dtype=np.int64)
-    for i, child in enumerate(parent.children):
-        labels[child.mask.astype(bool) & parent.mask.astype(bool)] = i
-    seg = inpaint.segment_like(filled, labels, parent.mask.astype(bool))
-    target = seg == [c.id for c in parent.children].index(node.id)
-    info["white_fraction"] = round(float(target.mean()), 4)
+    target, info = complete_child_mask(maps, parent.mask, [c.mask for c in parent.children],
+                                       [c.id for c in parent.children].index(node.id))
     return target, {"inpaint": info}
 
 
@@ -360,8 +354,6 @@ def stage_masks(call: dict, resources: Any = None) -> dict:
     if valid is not None and cfg.incomplete == "inpaint":
         target, extra = _inpainted_target(mdir, parent, node)
         valid = None
-    elif cfg.incomplete not in ("known", "inpaint"):
-        raise InputError(f"manifest masks.incomplete must be 'known' or 'inpaint', got {cfg.incomplete!r}")
     fit = fitter.fit(target, valid=valid, config=cfg, seed=int(call["material"].get("seed", 0)))
     doc = {"node": node_id, "parent": parent.id, "kind": "pptbf", "fit": _to_jsonable(fit),
            "node_params": fit.node_params(int(node.mask.shape[1])), **extra}

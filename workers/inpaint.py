@@ -161,3 +161,18 @@ def segment_like(maps: dict[str, np.ndarray], labels: np.ndarray, known: np.ndar
     votes = np.stack([(lab == c).sum(axis=1) for c in range(n_cls)], axis=1)
     out = votes.argmax(axis=1).reshape(known.shape)
     return np.where(known, labels, out)
+
+
+def complete_child_mask(maps: dict[str, np.ndarray], parent_mask: np.ndarray, child_masks: list[np.ndarray],
+                        child: int, config: InpaintConfig | None = None) -> tuple[np.ndarray, dict]:
+    """The inpainting variant's target: complete ``maps`` outside the parent, label the completed pixels like
+    the parent's children (``child_masks``, known inside the parent) and return child ``child``'s whole-image
+    mask with the fill info (lattice, lattice fill share, white fraction)."""
+    known = np.asarray(parent_mask, dtype=bool)
+    filled, info = periodic_inpaint(maps, known, config)
+    labels = np.zeros(known.shape, dtype=np.int64)
+    for i, m in enumerate(child_masks):
+        labels[np.asarray(m, dtype=bool) & known] = i
+    target = segment_like(filled, labels, known, config) == child
+    info["white_fraction"] = round(float(target.mean()), 4)
+    return target, info

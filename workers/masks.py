@@ -87,6 +87,10 @@ class MaskFitConfig:
     incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
     #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
+    def __post_init__(self) -> None:
+        if self.incomplete not in ("known", "inpaint"):
+            raise InputError(f"masks.incomplete must be 'known' or 'inpaint', got {self.incomplete!r}")
+
 
 @dataclass
 class MaskFit:
@@ -220,10 +224,12 @@ class MaskLoss:
         p[0] = 1.0 - self.white if complement else self.white
         return p
 
-    def render(self, params: np.ndarray, complement: bool = False, threshold_from_target: bool = True) -> np.ndarray:
-        """Binary render (inverted if complement) at the target's size and the loss's realisation."""
+    def render(self, params: np.ndarray, complement: bool = False, threshold_from_target: bool = True,
+               shift=None) -> np.ndarray:
+        """Binary render (inverted if complement) at the target's size and the loss's realisation (or ``shift``)."""
         p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
-        m = pp.render_mask(p, self.width, self.height, shift=self.shift, ref_width=self.width)
+        m = pp.render_mask(p, self.width, self.height, shift=self.shift if shift is None else shift,
+                           ref_width=self.width)
         return ~m if complement else m
 
     def describe(self, mask: np.ndarray) -> np.ndarray:
@@ -239,23 +245,21 @@ class MaskLoss:
     def fresh(self, params: np.ndarray, complement: bool = False, n: int = 2,
               threshold_from_target: bool = True) -> float:
         """Mean descriptor distance of `n` realisations far from any the fit or the tests use (validation)."""
-        p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
+        shifts = [(self.shift[0] + 41.3 + 7.9 * k, self.shift[1] + 37.1 + 6.1 * k) for k in range(max(1, int(n)))]
+        return self.mean_at(params, complement, threshold_from_target, shifts)
+
+    def mean_at(self, params: np.ndarray, complement: bool, threshold_from_target: bool, shifts: list) -> float:
+        """Mean descriptor distance of the renders at the given realisation shifts."""
         total = 0.0
-        for k in range(max(1, int(n))):
-            s = (self.shift[0] + 41.3 + 7.9 * k, self.shift[1] + 37.1 + 6.1 * k)
-            m = pp.render_mask(p, self.width, self.height, shift=s, ref_width=self.width)
-            total += self.of_mask(~m if complement else m)
-        return total / max(1, int(n))
+        for s in shifts:
+            total += self.of_mask(self.render(params, complement, threshold_from_target, shift=s))
+        return total / len(shifts)
 
     def __call__(self, params: np.ndarray, complement: bool = False, threshold_from_target: bool = True) -> float:
-        """Loss of a parameter vector: the mean over `realisations` shifts (the first is the loss's own shift)."""
-        total = self.of_mask(self.render(params, complement, threshold_from_target))
-        for k in range(1, self.realisations):
-            p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
-            s = (self.shift[0] + 3.7 * k, self.shift[1] + 5.3 * k)   # far away: an independent realisation
-            m = pp.render_mask(p, self.width, self.height, shift=s, ref_width=self.width)
-            total += self.of_mask(~m if complement else m)
-        return total / self.realisations
+        """Loss of a parameter vector: the mean over `realisations` shifts (the first is the loss's own shift;
+        the others far away: independent realisations)."""
+        shifts = [(self.shift[0] + 3.7 * k, self.shift[1] + 5.3 * k) for k in range(self.realisations)]
+        return self.mean_at(params, complement, threshold_from_target, shifts)
 
 
 def _raw_describer(index) -> Callable | None:
@@ -286,13 +290,8 @@ def realisation_distance(loss: MaskLoss, params: np.ndarray, complement: bool = 
     widths away, drawn from `seed`, threshold from the target): the alignment-free score of a stochastic mask as
     a graph node renders it (a new realisation, not the one fitted). For the true parameters of a synthetic
     target this is the "truth floor": what a perfect fit scores."""
-    rng = np.random.default_rng(seed)
-    p = loss.with_threshold(params, complement)
-    total = 0.0
-    for s in rng.uniform(8.0, 16.0, size=(max(1, int(n)), 2)):
-        m = pp.render_mask(p, loss.width, loss.height, shift=(float(s[0]), float(s[1])), ref_width=loss.width)
-        total += loss.of_mask(~m if complement else m)
-    return total / max(1, int(n))
+    draws = np.random.default_rng(seed).uniform(8.0, 16.0, size=(max(1, int(n)), 2))
+    return loss.mean_at(params, complement, True, [(float(a), float(b)) for a, b in draws])
 
 
 @contextmanager

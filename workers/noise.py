@@ -604,7 +604,6 @@ def _synthesize(model: NoiseModel, width: int, height: int, scale: float, seed: 
     if int(width) < 1 or int(height) < 1 or not scale > 0 or not np.isfinite(scale):
         raise InputError(f"synthesize: bad size {width}x{height} or scale {scale}")
     width, height = int(width), int(height)
-    c = model.channels
     t = tile_size(model, width, height, scale, tile)
     if t is None:
         rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, 0x6E6F6973]))
