@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pptbf_db import pptbf
+from pptbf_db.pptbf import GENERATOR
 from pptbf_db.descriptor import DescriptorConfig, block_slices, describe_masks, fit_pca
 from pptbf_db.index import DEGENERATE_WHITE, FORMAT
 from workers.errors import DatabaseError
@@ -51,7 +52,7 @@ class BuildConfig:
         desc = self.descriptor.to_dict()
         desc.pop("dim")
         out = {"format": FORMAT, "size": self.size, "resolution": self.resolution, "seed": self.seed,
-               "chunk": self.chunk, "descriptor": desc}
+               "chunk": self.chunk, "descriptor": desc, "generator": GENERATOR}
         if self.regular_share:  # absent = 0: builds started before the option resume as they were
             out["regular_share"] = self.regular_share
         return out
@@ -275,7 +276,7 @@ def _finish(folder: Path, db, cfg: BuildConfig, params: np.ndarray, n_chunks: in
             "explained_variance": float(pca.explained.sum()), "reduced_dtype": cfg.reduced_dtype,
             "degenerate": int((~usable).sum()),
             "sampler": "pptbf_db.pptbf.sample_params(ref_width=resolution, regular_share=regular_share)",
-            "regular_share": cfg.regular_share,
+            "regular_share": cfg.regular_share, "generator": GENERATOR,
             "task_core_seconds": round(float(sum(secs)), 2), "pca_seconds": round(pca_seconds, 2),
             "raw_kept": bool(keep_raw),
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}

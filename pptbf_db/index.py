@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pptbf_db.descriptor import DescriptorConfig, PCAModel, describe_masks
+from pptbf_db.pptbf import GENERATOR
 from workers.errors import DatabaseError
 
 logger = logging.getLogger(__name__)
@@ -123,6 +124,10 @@ class PPTBFIndex:
             raise DatabaseError(f"{folder}: inconsistent PPTBF database (meta size {n}, params {params.shape}, "
                                 f"reduced {reduced.shape}, pca dim {pca.dim}); rebuild it")
         logger.info("loaded PPTBF database %s: %d entries, %d px, dim %d", folder, n, meta["resolution"], pca.dim)
+        if meta.get("generator", "pptbf/1") != GENERATOR:
+            logger.warning("%s was rendered by PPTBF generator %s, this code renders %s: queries still work, but "
+                           "`proceduralize db rebuild` makes the descriptors match the fields fitted here",
+                           folder, meta.get("generator", "pptbf/1"), GENERATOR)
         return cls(params, reduced, pca, config, meta["resolution"], white, meta, folder)
 
     # -------------------------------------------------------------------------------------------- describe

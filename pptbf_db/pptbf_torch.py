@@ -1,6 +1,6 @@
 """Differentiable torch PPTBF: the shading of pptbf.py in torch over the (detached) numpy structure.
 
-The discrete part (tiles, hashing, subdivision, relaxation, ranking, the border march) is computed once in numpy by
+The discrete part (tiles, hashing, subdivision, relaxation, ranking, the cell borders) is computed once in numpy by
 pptbf.prepare / pptbf.pixel_structure and enters as index tensors and detached values (spec §4). Everything
 continuous is recomputed here with autograd: the coordinates (rotation, aspect, zoom with the int-cast resolution
 passed straight-through, turbulence A/G/f), the jittered points p = J p* + (1 - J) c', the classical and cellular
@@ -342,7 +342,7 @@ def evaluate_torch(params, width: int, height: int | None = None, *, shift=(0.0,
     T["py"] = c.jitter * T["pstar_y"] + (1.0 - c.jitter) * T["ccy"]
     rows = pp._chunk_rows(width, st.cand.shape[1] * max(1, d.kmax))
     out = []
-    memo = pp.MarchMemo()
+    memo = pp.BorderMemo()
     for r0 in range(0, height, rows):
         sl = slice(r0, r0 + rows)
         ps = pp.pixel_structure(x_np[sl], y_np[sl], st.code[sl], st, d, need_comp=True, memo=memo)

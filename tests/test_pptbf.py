@@ -296,13 +296,13 @@ def test_threaded_chunks_give_the_same_field(monkeypatch):
     assert pp.default_threads() == 2
 
 
-def test_march_memo_reuses_border_radii_with_identical_result(monkeypatch):
+def test_border_memo_reuses_border_radii_with_identical_result(monkeypatch):
     """Cellular-window border radii looked up from the previous row chunk: same field, most keys reused when
     cells span many chunks (a zoomed render)."""
     p = make_params(tiling=0, jitter=0.5, resolution=8, window_shape=2, window_blend=0.6, window_larp=0.3)
     assert pp.uses_cellular(pp.decode(p))
     monkeypatch.setattr(pp, "CHUNK_ELEMS", 4096)
-    orig = pp.MarchMemo.lookup
+    orig = pp.BorderMemo.lookup
     stats = {"keys": 0, "hits": 0}
 
     def counting(self, ukey):
@@ -311,10 +311,10 @@ def test_march_memo_reuses_border_radii_with_identical_result(monkeypatch):
         stats["hits"] += 0 if found is None else int(found[0].sum())
         return found
 
-    monkeypatch.setattr(pp.MarchMemo, "lookup", counting)
+    monkeypatch.setattr(pp.BorderMemo, "lookup", counting)
     with_memo = pp.evaluate(p, 96, pixel_scale=4.0, threads=1)
     assert stats["hits"] > 0.5 * stats["keys"], stats
-    monkeypatch.setattr(pp.MarchMemo, "lookup", lambda self, ukey: None)
+    monkeypatch.setattr(pp.BorderMemo, "lookup", lambda self, ukey: None)
     assert np.array_equal(pp.evaluate(p, 96, pixel_scale=4.0, threads=1), with_memo)
 
 
