@@ -3,6 +3,8 @@
 Run: python bench/pptbf.py [--n 3] [--seed 0] [--sizes 128 256 512] [--torch-size 256] [--device cpu]
 Prints one row per family with the median time (s) over n random database-like parameter vectors
 (sample_params(ref_width=128), rendered with ref_width=128 so the pattern scale is the database's).
+With --dist N it prints instead the distribution over N vectors of all families at the largest size, for 1 and
+for the default number of threads (median, mean, p90, max, share under 1 s).
 """
 from __future__ import annotations
 
@@ -21,6 +23,16 @@ def _time(fn) -> float:
     return time.perf_counter() - t0
 
 
+def _distribution(params: np.ndarray, size: int, threads: int | None) -> None:
+    """Table of evaluation times over many parameter vectors, single-threaded and with the default threads."""
+    counts = sorted({1, pp.default_threads() if threads is None else threads})
+    print(f"{'threads':>7} {'n':>5} {'median':>8} {'mean':>8} {'p90':>8} {'max':>8} {'< 1 s':>7}   (numpy {size} px)")
+    for th in counts:
+        t = np.array([_time(lambda p=p: pp.evaluate(p, size, ref_width=128, threads=th)) for p in params])
+        print(f"{th:>7} {t.size:>5} {np.median(t):>8.3f} {t.mean():>8.3f} {np.percentile(t, 90):>8.3f} "
+              f"{t.max():>8.3f} {np.mean(t < 1.0):>7.2f}")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=3, help="parameter vectors per family")
@@ -29,8 +41,12 @@ def main(argv=None) -> None:
     ap.add_argument("--torch-size", type=int, default=256, help="0 to skip torch")
     ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     ap.add_argument("--threads", type=int, default=None, help="numpy chunk threads (default: pp.default_threads())")
+    ap.add_argument("--dist", type=int, default=0, metavar="N", help="distribution over N vectors instead")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
+    if args.dist:
+        _distribution(pp.sample_params(rng, args.dist, ref_width=128), max(args.sizes), args.threads)
+        return
     cols = [f"numpy {s}" for s in args.sizes] + ([f"torch {args.torch_size}"] if args.torch_size else [])
     if args.torch_size and args.device != "cpu":
         import torch
