@@ -8,8 +8,8 @@ With p0 at the origin, the ranking distance of the ray point t e to p0 is c0 t, 
 (A = 1 - larp, i0..i3 the inverse side distances of p_j's cell, spec §2.3). The max is over four lines, so
 D_j(t) - c0 t = max_m g_m(t) with g_m(t) = A |t e - r_j| + k_m t + c_m convex. Each {g_m < 0} is an interval with
 closed-form ends, p_j beats p0 on their intersection, and the ray leaves p0's cell at the smallest start of a
-non-empty intersection over the candidates. The march finds the same border up to its resolution (measured in
-tests: within 0.2 / 64 where the march stops on the first exit).
+non-empty intersection over the candidates (tests/test_border.py: within one step of a march sampled every 2e-4,
+the same competitor in > 99 % of rays; larp = 0 equal to the closed form).
 """
 from __future__ import annotations
 

@@ -27,8 +27,8 @@ from workers.errors import DatabaseError
 
 logger = logging.getLogger(__name__)
 
-#: measured: 5000 entries at 128 px in 815 s with 2 Ray workers on the shared 2-core dev machine (load ~9);
-#: ~340 entries per idle core-minute (render 160 ms + describe 14 ms), so ~10000 fit 15 min on 2 idle cores
+#: measured (generator pptbf/2): 5000 entries at 128 px in 149 s with 2 Ray workers on the idle 2-core dev
+#: machine, ~1050 entries per core-minute; 20000 fit well within 15 min (see the issue notes for the figure)
 DEFAULT_SIZE = 5000
 DEFAULT_RESOLUTION = 128
 DEFAULT_REGULAR_SHARE = 0.0   # 0.25 measured no better on regular targets (10/12 vs 9/12 within 1.5x)

@@ -21,8 +21,9 @@ Deviations from the reference (all documented in the spec or noted here):
   elsewhere; mixture 3 uses only ddist < 1 anyway).
 * exact ties in the ranking go to the lower candidate index (as the reference's strict minimum search).
 
-Cost: see bench/pptbf.py (numpy, database-like parameters: 128 px ~0.15 s, 256 px ~0.6 s, 512 px ~1.7-3.5 s;
-the border march (~45%), the kernels (~20%) and the ranking (~15%) dominate).
+Cost: see bench/pptbf.py (`--dist 100`: 100 database-like vectors at 512 px, ref_width 128, on this 2-core machine:
+median 0.47 s on 1 thread, 0.34 s on 2, p90 1.25 s / 0.96 s; the slow tail is periods of 8-10 px, 4x denser
+than the database's). Shares of a 1-thread run: cell borders ~22 %, kernels ~22 %, ranking ~20 %, structure ~14 %.
 """
 from __future__ import annotations
 
@@ -275,8 +276,8 @@ def hash_seed(x, y) -> np.ndarray:
     x = np.asarray(x, dtype=np.int64)
     y = np.asarray(y, dtype=np.int64)
     p0 = PERM[0]
-    a = PERM[np.mod(x + PERM[np.mod(y + p0, 1024)], 1024)]
-    b = PERM[np.mod(3 * x + PERM[np.mod(4 * y + p0, 1024)], 1024)]
+    a = PERM[(x + PERM[(y + p0) & 1023]) & 1023]          # & 1023 = mod 1024 (negative too), cheaper
+    b = PERM[(3 * x + PERM[(4 * y + p0) & 1023]) & 1023]
     return a + 32768 * b
 
 
@@ -288,7 +289,7 @@ def draw(seed, n) -> np.ndarray:
 
 def _lattice(i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """Value-noise lattice value at integer (i, j)."""
-    return NOISE[np.mod(PERM[np.mod(i, 1024)] + 3 * PERM[np.mod(j, 1024)] + 5 * PERM[0], 1024)]
+    return NOISE[(PERM[i & 1023] + 3 * PERM[j & 1023] + 5 * PERM[0]) & 1023]
 
 
 def value_noise(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -696,7 +697,7 @@ def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv
 
 
-def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = False) -> Structure:
+def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = False, threads: int = 1) -> Structure:
     """Deduplicate the tile neighbourhoods of all pixels and build their candidate point lists once."""
     tt = TILING_TYPES[d.tiling]
     ix, iy, q = cell_codes(x, y, tt)
@@ -742,7 +743,7 @@ def build_structure(x: np.ndarray, y: np.ndarray, d: Decoded, stable: bool = Fal
                  n_slots, cand.shape[1])
     st = Structure(code, cand, cand_valid, pts)
     if uses_cellular(d):
-        st.border = border_table(pts, flat["valid"], np.unique(cand[cand_valid]))
+        st.border = border_table(pts, flat["valid"], np.unique(cand[cand_valid]), threads)
     return st
 
 
@@ -783,14 +784,14 @@ class BorderTable:
     inv0: tuple            # 4 x (R,) the point's own
 
 
-def border_table(P: PointTable, valid: np.ndarray, centres: np.ndarray) -> BorderTable:
+def border_table(P: PointTable, valid: np.ndarray, centres: np.ndarray, threads: int = 1) -> BorderTable:
     """Nearest valid neighbours (k-d tree, L2) of the `centres` point ids and their data for the border solver."""
     n = P.px.shape[0]
     ids = np.flatnonzero(valid)
     k = min(BORDER_NEIGHBOURS + 1, max(ids.size, 1))
     xy = np.stack([P.px[ids], P.py[ids]], axis=-1)
     if ids.size:
-        _, j = cKDTree(xy).query(np.stack([P.px[centres], P.py[centres]], axis=-1), k=k)
+        _, j = cKDTree(xy).query(np.stack([P.px[centres], P.py[centres]], axis=-1), k=k, workers=threads)
         nbr = ids[j.reshape(centres.size, k)]
     else:
         nbr = centres[:, None].repeat(k, 1)
@@ -830,7 +831,14 @@ def _trig(name: str, a) -> np.ndarray:
     import torch
 
     arr = np.ascontiguousarray(a, dtype=np.float64)
-    return getattr(torch, name)(torch.from_numpy(arr)).numpy()
+    out = np.empty_like(arr)
+    src, dst, fn = torch.from_numpy(arr).reshape(-1), torch.from_numpy(out).reshape(-1), getattr(torch, name)
+    for s in range(0, src.shape[0], _TRIG_PIECE):   # below torch's grain size: no intra-op threads, which
+        fn(src[s:s + _TRIG_PIECE], out=dst[s:s + _TRIG_PIECE])   # competed with our chunk threads (measured)
+    return out
+
+
+_TRIG_PIECE = 32768
 
 
 def _cos(a) -> np.ndarray:
@@ -932,12 +940,7 @@ class BorderMemo:
 
     def lookup(self, ukey: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(hit mask, rho, comp) for sorted unique keys; None before the first chunk is published."""
-        snap = self.latest
-        if snap is None or snap[0].size == 0:
-            return None
-        keys, rho, comp = snap
-        i = np.minimum(np.searchsorted(keys, ukey), keys.size - 1)
-        return keys[i] == ukey, rho[i], comp[i]
+        return _lookup(self.latest, ukey)
 
     def publish(self, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
         """Make this chunk's (keys, rho, comp) parts the snapshot the next chunks look up."""
@@ -949,22 +952,34 @@ class BorderMemo:
                        np.concatenate([q[2] for q in parts])[first])
 
 
+def _lookup(snap, ukey: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(hit mask, rho, comp) of keys in a (sorted keys, rho, comp) snapshot; None for no snapshot."""
+    if snap is None or snap[0].size == 0:
+        return None
+    keys, rho, comp = snap
+    i = np.minimum(np.searchsorted(keys, ukey), keys.size - 1)
+    return keys[i] == ukey, rho[i], comp[i]
+
+
 def _border_queries(p0, j, st: Structure, d: Decoded, need_comp: bool, memo: BorderMemo | None = None,
                     pending: list | None = None):
-    """Border radii for per-pixel queries (point p0, sector j), deduplicated (and, with a memo, looked up from the
-    previous chunk; this chunk's results are appended to ``pending``)."""
+    """Border radii for per-pixel queries (point p0, sector j), deduplicated, looked up from the memo's previous
+    chunk and from this chunk's earlier queries (``pending``, to which the results are appended), the rest solved.
+    """
     nsec = d.n_sectors + 4
     key = p0[..., None].astype(np.int64) * nsec + (j + 1)
     ukey, inv = unique_inverse(key)
-    found = memo.lookup(ukey) if memo is not None else None
-    if found is None:
-        rho, comp = _border_keys(ukey, st, d)
-    else:
-        hit, rho, comp = found
-        rho, comp = rho.copy(), comp.copy()
-        todo = np.flatnonzero(~hit)
-        if todo.size:
-            rho[todo], comp[todo] = _border_keys(ukey[todo], st, d)
+    rho = np.empty(ukey.shape[0])
+    comp = np.empty(ukey.shape[0], dtype=np.int64)
+    todo = np.arange(ukey.shape[0])
+    for snap in ([memo] if memo is not None else []) + list(pending or []):
+        found = snap.lookup(ukey[todo]) if isinstance(snap, BorderMemo) else _lookup(snap, ukey[todo])
+        if found is not None:
+            hit, r, c = found
+            rho[todo[hit]], comp[todo[hit]] = r[hit], c[hit]
+            todo = todo[~hit]
+    if todo.size:
+        rho[todo], comp[todo] = _border_keys(ukey[todo], st, d)
     if pending is not None:
         pending.append((ukey, rho, comp))
     rho_px = rho[inv].reshape(j.shape)
@@ -1198,7 +1213,7 @@ def pair_features(qx, qy, pid, P: PointTable, K: KernelTable, d: Decoded):
     ff > 0.5 (priority -1: none).
     """
     nk = P.nk[pid]
-    order = np.argsort(-nk, kind="stable")          # pairs with more kernels first: kernel i's pairs are a prefix
+    order = np.argsort((K.au.shape[0] - nk).astype(np.int8), kind="stable")   # radix sort; more kernels first
     qx, qy, ps = qx[order], qy[order], pid[order]
     counts = np.bincount(nk, minlength=K.au.shape[0] + 1)[::-1].cumsum()[::-1]   # counts[i] = #pairs with nk >= i
     acc = np.zeros(pid.shape[0])
@@ -1308,7 +1323,7 @@ def chunk_plan(width: int, n_cand: int, d: Decoded) -> tuple[int, int]:
 
 
 def prepare(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,
-            ref_width: int | None = None, stable: bool = False):
+            ref_width: int | None = None, stable: bool = False, threads: int = 1):
     """Decode params, compute domain coordinates and the structure (shared by numpy and torch evaluation)."""
     height = width if height is None else height
     if width < 1 or height < 1:
@@ -1319,7 +1334,7 @@ def prepare(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), 
     zoom = float(ref_width or width) / d.res
     x0, y0 = base_coords(width, height, shift, pixel_scale, ref_width)
     x, y = domain_coords(x0, y0, d, zoom)
-    return d, zoom, x, y, build_structure(x, y, d, stable)
+    return d, zoom, x, y, build_structure(x, y, d, stable, threads)
 
 
 def default_threads() -> int:
@@ -1337,9 +1352,11 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
     int(resolution) * pixel_scale pixels whatever the output width, so a larger width extends the pattern and
     pixel_scale=2 doubles its size (the distortion follows). `shift` (in reference widths) picks the realisation.
     Row chunks are independent and numpy releases the GIL in them: `threads` (default `default_threads()`)
-    evaluate them in parallel with the same result (measured 1.6x on 2 cores at 512 px).
+    evaluate them in parallel with the same result (measured at 512 px: median 0.47 s -> 0.34 s on 2 cores).
     """
-    d, zoom, x, y, st = prepare(params, width, height, shift=shift, pixel_scale=pixel_scale, ref_width=ref_width)
+    threads = default_threads() if threads is None else max(1, int(threads))
+    d, zoom, x, y, st = prepare(params, width, height, shift=shift, pixel_scale=pixel_scale, ref_width=ref_width,
+                                threads=threads)
     out = np.empty(x.shape, dtype=np.float32)
     K = kernel_table(st.points, d)
     rows, sub = chunk_plan(x.shape[1], st.cand.shape[1], d)
@@ -1353,7 +1370,7 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
             out[r0 + s0:r0 + s0 + sub] = shade(x[sl][s1], y[sl][s1], ps.rows(s1), st.points, d, K)
 
     starts = range(0, x.shape[0], rows)
-    n = min(len(starts), default_threads() if threads is None else max(1, int(threads)))
+    n = min(len(starts), threads)
     if n <= 1:
         for r0 in starts:
             run(r0)

@@ -44,7 +44,7 @@ def test_first_exit_matches_a_fine_march(larp):
     err = b_rho[found] - rho[found]
     assert np.all(err >= -1e-5) and np.all(err <= 2e-4 + 1e-5), (err.min(), err.max())
     assert np.mean(comp[found] == b_comp[found]) > 0.99
-    assert np.array_equal(comp[~found] < 0, np.ones((~found).sum(), dtype=bool)) or np.all(rho[~found] >= 4.0 - 1e-3)
+    assert np.all((comp[~found] < 0) | (rho[~found] >= 4.0 - 2e-4))     # none, or past the sampled range
 
 
 def test_larp_zero_closed_form():
