@@ -313,7 +313,12 @@ def test_multi_start_fit_respects_budget(tiny_index):
 
 @pytest.mark.slow
 def test_refit_random_parameters_bundled_database():
-    """The same acceptance with the bundled 5000-entry database at 128 px and a 150-evaluation budget."""
+    """The same acceptance with the bundled 5000-entry database at 128 px and a 150-evaluation budget, on 15
+    targets: most (a majority, and the median) re-fitted within 1.5x of the truth floor.
+
+    15 rather than 5 targets: the ratio of one target is noisy (it is measured on fresh realisations; the same
+    fit with a 2 % different resolution measured 1.07 and 1.31), so 3 of 5 passed or failed on one ratio near
+    1.5. Measured on these 15: 9 within 1.5x, median 1.37, mean 1.45 (generator pptbf/1: 11, 1.27, 1.44)."""
     from pptbf_db.index import default_database_path
 
     path = default_database_path()
@@ -321,12 +326,12 @@ def test_refit_random_parameters_bundled_database():
         pytest.skip("bundled PPTBF database not present")
     index = PPTBFIndex.load(path)
     ratios = []
-    for p, _, _, target in _random_targets(np.random.default_rng(1), 5, 128):
+    for p, _, _, target in _random_targets(np.random.default_rng(1), 15, 128):
         loss = MaskLoss(target, index)
         fit = fit_pptbf_mask(target, index, config=MaskFitConfig(max_evals=150, time_budget_s=60))
         assert fit.seconds < 70
         ratios.append(realisation_distance(loss, fit.params, fit.complement) / realisation_distance(loss, p))
-    assert sum(r <= 1.5 for r in ratios) >= 3, ratios
+    assert sum(r <= 1.5 for r in ratios) >= 8 and np.median(ratios) <= 1.5, np.round(ratios, 2)
 
 
 def test_refit_known_parameters(tiny_index):
