@@ -34,7 +34,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
 from pptbf_db import tables
@@ -753,15 +752,19 @@ BORDER_RING = 2
 
 
 def _ring_codes(cix: np.ndarray, ciy: np.ndarray, tt: TilingType) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cell codes (every sub-cell) of the cells within BORDER_RING of the given cells and not among them."""
+    """Cell codes (every sub-cell) of the cells within BORDER_RING of the given cells and not among them (sparse:
+    a rotated, stretched domain can have a bounding box of cells far larger than the image)."""
+    r = np.arange(-BORDER_RING, BORDER_RING + 1)
+    ox, oy = (v.ravel() for v in np.meshgrid(r, r, indexing="ij"))
     x0, y0 = int(cix.min()) - BORDER_RING, int(ciy.min()) - BORDER_RING
-    grid = np.zeros((int(cix.max()) - x0 + BORDER_RING + 1, int(ciy.max()) - y0 + BORDER_RING + 1), dtype=bool)
-    grid[cix - x0, ciy - y0] = True
-    ring = binary_dilation(grid, np.ones((2 * BORDER_RING + 1,) * 2, dtype=bool)) & ~grid
-    rx, ry = np.nonzero(ring)
+    span = int(ciy.max()) - y0 + BORDER_RING + 1
+    cells = np.unique((cix - x0) * span + (ciy - y0))
+    near = np.unique(((cells // span)[:, None] + ox) * span + (cells % span)[:, None] + oy)
+    ring = near[~np.isin(near, cells, assume_unique=True)]
+    rx, ry = ring // span + x0, ring % span + y0
     tab = _table_for(tt)
     nsub = 1 if tab is None else tab[0] ** 2
-    return (np.repeat(rx + x0, nsub).astype(np.int64), np.repeat(ry + y0, nsub).astype(np.int64),
+    return (np.repeat(rx, nsub).astype(np.int64), np.repeat(ry, nsub).astype(np.int64),
             np.tile(np.arange(nsub, dtype=np.int64), rx.size))
 
 
