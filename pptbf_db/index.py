@@ -124,10 +124,11 @@ class PPTBFIndex:
             raise DatabaseError(f"{folder}: inconsistent PPTBF database (meta size {n}, params {params.shape}, "
                                 f"reduced {reduced.shape}, pca dim {pca.dim}); rebuild it")
         logger.info("loaded PPTBF database %s: %d entries, %d px, dim %d", folder, n, meta["resolution"], pca.dim)
-        if meta.get("generator", "pptbf/1") != GENERATOR:
+        generator = meta.get("generator", "pptbf/1")   # databases before the field was recorded
+        if generator != GENERATOR:
             logger.warning("%s was rendered by PPTBF generator %s, this code renders %s: queries still work, but "
                            "`proceduralize db rebuild` makes the descriptors match the fields fitted here",
-                           folder, meta.get("generator", "pptbf/1"), GENERATOR)
+                           folder, generator, GENERATOR)
         return cls(params, reduced, pca, config, meta["resolution"], white, meta, folder)
 
     # -------------------------------------------------------------------------------------------- describe

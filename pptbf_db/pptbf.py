@@ -31,6 +31,7 @@ import logging
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from dataclasses import dataclass
 
 import numpy as np
@@ -975,8 +976,9 @@ def _border_queries(p0, j, st: Structure, d: Decoded, need_comp: bool, memo: Bor
     rho = np.empty(ukey.shape[0])
     comp = np.empty(ukey.shape[0], dtype=np.int64)
     todo = np.arange(ukey.shape[0])
-    for snap in ([memo] if memo is not None else []) + list(pending or []):
-        found = snap.lookup(ukey[todo]) if isinstance(snap, BorderMemo) else _lookup(snap, ukey[todo])
+    finders = ([memo.lookup] if memo is not None else []) + [partial(_lookup, snap) for snap in pending or ()]
+    for find in finders:
+        found = find(ukey[todo])
         if found is not None:
             hit, r, c = found
             rho[todo[hit]], comp[todo[hit]] = r[hit], c[hit]
@@ -998,14 +1000,13 @@ def _border_keys(ukey: np.ndarray, st: Structure, d: Decoded) -> tuple[np.ndarra
     nsec = d.n_sectors + 4
     rho = np.empty(ukey.shape[0])
     comp = np.empty(ukey.shape[0], dtype=np.int64)
+    larp = d.larp != 0.0
     for s in range(0, ukey.shape[0], BORDER_BLOCK):
         k = ukey[s:s + BORDER_BLOCK]
         p0, sec = k // nsec, k % nsec - 1
-        theta = sec * d.delta + d.delta * P.rot_u[p0]
-        f = BORDER_DTYPE
-        larp = d.larp != 0.0
         r0 = T.row[p0]
-        th = theta.astype(f)     # float32 trig is vectorised in numpy (the solver runs in float32 anyway)
+        # float32 trig is vectorised in numpy (the solver runs in BORDER_DTYPE anyway)
+        th = (sec * d.delta + d.delta * P.rot_u[p0]).astype(BORDER_DTYPE)
         r, c = first_exit(np.cos(th), np.sin(th), T.rx[r0], T.ry[r0],
                           tuple(v[r0] for v in T.inv) if larp else (), T.valid[r0],
                           tuple(v[r0] for v in T.inv0) if larp else (), d.larp)
@@ -1026,7 +1027,8 @@ def upper_branch(alpha, p0x, p0y, ta, rho_a, rho_b, delta: float) -> np.ndarray:
     return alpha > am
 
 
-def cellular_sectors(x, y, ps: PixelStructure, st: Structure, d: Decoded, need_comp: bool = False, memo: BorderMemo | None = None) -> None:
+def cellular_sectors(x, y, ps: PixelStructure, st: Structure, d: Decoded, need_comp: bool = False,
+                     memo: BorderMemo | None = None) -> None:
     """Fill ps.ka / up / rho / rho_comp: the closest cell's border radii at sectors ka, ka+1 and ka+2 or ka-1."""
     pending: list = []
     P = st.points
@@ -1161,6 +1163,11 @@ class KernelTable:
     s: np.ndarray
     w: np.ndarray
 
+    @property
+    def kmax(self) -> int:
+        """Kernel slots per point."""
+        return self.au.shape[0]
+
 
 def kernel_table(P: PointTable, d: Decoded) -> KernelTable:
     """Everything about the kernels that does not depend on the pixel, computed once per point."""
@@ -1216,16 +1223,14 @@ def pair_features(qx, qy, pid, P: PointTable, K: KernelTable, d: Decoded):
     ff > 0.5 (priority -1: none).
     """
     nk = P.nk[pid]
-    order = np.argsort((K.au.shape[0] - nk).astype(np.int8), kind="stable")   # radix sort; more kernels first
+    order = np.argsort((K.kmax - nk).astype(np.int8), kind="stable")   # radix sort; more kernels first
     qx, qy, ps = qx[order], qy[order], pid[order]
-    counts = np.bincount(nk, minlength=K.au.shape[0] + 1)[::-1].cumsum()[::-1]   # counts[i] = #pairs with nk >= i
-    acc = np.zeros(pid.shape[0])
+    counts = np.bincount(nk, minlength=K.kmax + 1)[::-1].cumsum()[::-1]   # counts[i] = #pairs with nk >= i
+    acc = np.full(pid.shape[0], -1.0 if d.mixture == 3 else 0.0)      # mixture 3: best priority, -1 = none
     val = np.zeros(pid.shape[0]) if d.mixture == 3 else None
-    if d.mixture == 3:
-        acc -= 1.0
     cut = _ddist_cut(d)
-    for i in range(K.au.shape[0]):
-        c = int(counts[i + 1]) if i + 1 < counts.shape[0] else 0
+    for i in range(K.kmax):
+        c = int(counts[i + 1])
         if c == 0:
             break
         p, x, y = ps[:c], qx[:c], qy[:c]
