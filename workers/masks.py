@@ -67,6 +67,9 @@ class MaskFitConfig:
     the fit's realisation; its evaluations are reserved from max_evals.
     realisations: realisations averaged per loss evaluation (2 generalises slightly better to fresh
     realisations at equal time in one measurement, but halves the evaluations; default 1).
+    lattice / layout_size: a mask whose lattice analysis (workers.lattice) finds a repeat is fitted by
+    workers.layout_fit at up to layout_size px (starts on the lattice, pretrained VGG-19 Gram loss, layout
+    kept, then a free polish); other masks (stains, rust) take the query-and-optimise path at fit_size.
     """
 
     rounds: int = 5
@@ -84,6 +87,8 @@ class MaskFitConfig:
     structure_moves: bool = False
     realisations: int = 1
     validate: int = 2
+    lattice: bool = True          # masks with a lattice (bricks, tiles): lattice-first fit with the VGG-19 loss
+    layout_size: int = 256        # fit width (px) of that path (the mask's own when smaller)
     incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
     #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
@@ -375,8 +380,27 @@ def _prepare_target(mask, valid, fit_width: int) -> tuple[np.ndarray, np.ndarray
     return target, valid_s
 
 
+def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit | None:
+    """The lattice-first fit when the mask (fully known or nearly) has a lattice, else None."""
+    from .lattice import analyse_lattice
+    from .layout_fit import fit_layout
+
+    target, valid_s = _prepare_target(mask, valid, cfg.layout_size)
+    if valid_s is not None and valid_s.mean() < 0.9:
+        return None
+    lat = analyse_lattice(target)
+    if lat.kind == "none":
+        logger.info("mask has no lattice (regularity %.2f): query-and-optimise fit", lat.regularity)
+        return None
+    return fit_layout(target, valid_s, index, lat, cfg, seed)
+
+
 def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
     """fit_pptbf_mask without the thread setting."""
+    if cfg.lattice:
+        fit = _layout_first(mask, index, valid, cfg, seed)
+        if fit is not None:
+            return fit
     t0 = time.perf_counter()
     target, valid_s = _prepare_target(mask, valid, cfg.fit_size or _index_resolution(index) or 128)
     h, w = target.shape
