@@ -5,7 +5,7 @@ Run: python bench/layout.py [--n 30] [--seed 0] [--budget 60] [--evals 150] [--r
 
 Synthetic (issue acceptance): n regular targets at 256 px from known parameters, cycling over the tiling
 families square 0, running bond 4, thirds 5, irregular rows 6-9, herringbone 10-13, Pythagorean 14-15 and
-pavement 16-17; period (resolution) 12-48 px, random rotation and aspect ratio (0.6-1.8), jitter <= 0.1, a
+pavement 16-17; lattice period 12-48 px, random rotation and aspect ratio (0.6-1.8), jitter <= 0.1, a
 random cellular window (larp, smoothness, sector count) and threshold. Each is fitted from scratch
 (fit_pptbf_mask with the bundled database, one torch thread). Columns:
   lat      period error (%) and angle error (deg) of a fresh realisation's lattice against the target's
@@ -52,8 +52,10 @@ HAND_BUILT: dict[str, dict] = {
 
 
 def synthetic_target(rng: np.random.Generator, tiling: int) -> np.ndarray:
-    """A regular parameter vector of the given tiling family (see module doc)."""
-    m = L.LatticeMatch(tiling, float(rng.integers(12, 49)), float(np.exp(rng.uniform(np.log(0.6), np.log(1.8)))),
+    """A regular parameter vector of the given tiling family (see module doc): the lattice period (the shortest
+    cell-to-cell vector; the row spacing for rows) is drawn in 12-48 px and the resolution set from it."""
+    period = float(rng.uniform(12.0, 48.0))
+    m = L.LatticeMatch(tiling, period / L.domain_period(tiling), float(np.exp(rng.uniform(np.log(0.6), np.log(1.8)))),
                        float(rng.uniform(0.0, 2.0)), 0.0)
     p = L.layout_params(m, float(rng.uniform(0.55, 0.85)), float(rng.uniform(0.0, 1.0)))
     I = pp.PARAM_INDEX

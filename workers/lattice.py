@@ -280,7 +280,7 @@ def analyse_lattice(mask, config: LatticeConfig | None = None) -> Lattice:
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
     # points carry at least rows_ratio of the strongest vector's contrast (real walls drift from row to row)
     if max(z1, z2) >= cfg.min_significance and best2 is not None and best2[0] >= cfg.rows_ratio * s1:
-        return _describe_2d(best2[1], best2[0], max(z1, z2), base)
+        return _describe_2d(ac, best2[1], best2[0], max(z1, z2), base)
     if v is not None:
         if z1 >= cfg.min_significance:
             ang = math.degrees(math.atan2(v[1], v[0])) + 90.0
@@ -302,18 +302,20 @@ def _refine_rows(ac: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:
     return (obs[good] * ks[good, None]).sum(axis=0) / (ks[good] ** 2).sum()
 
 
-def _describe_2d(b: np.ndarray, score: float, z: float, base: dict) -> Lattice:
-    """Rows, row offset and orientation of a reduced 2-D basis: rows run along the basis vector (or the sum or
-    difference of the basis) whose lattice lines are farthest apart, i.e. the densest lattice line."""
+def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: dict) -> Lattice:
+    """Rows, row offset and orientation of a reduced 2-D basis: rows run along the short lattice vector (basis,
+    sum or difference) along which the autocorrelation stays highest between lattice points (continuous mortar
+    lines of a brick course keep matching along the course, not across it)."""
     area = abs(float(np.linalg.det(b)))
     best = None
     for c in ((1, 0), (0, 1), (1, 1), (1, -1)):
         v = c[0] * b[0] + c[1] * b[1]
-        spacing = area / float(np.linalg.norm(v))
-        if best is None or spacing > best[0] + 1e-6:
-            best = (spacing, v)
-    spacing, row = best
-    other = b[1] if abs(float(np.cross(row, b[1]))) > 1e-6 else b[0]
+        ridge = float(_sample(ac, np.outer([0.25, 0.5, 0.75], v)).mean())
+        if best is None or ridge > best[0] + 1e-9:
+            best = (ridge, v)
+    row = best[1]
+    spacing = area / float(np.linalg.norm(row))
+    other = b[1] if abs(float(row[0] * b[1][1] - row[1] * b[1][0])) > 1e-6 else b[0]
     t = float(other @ row) / float(row @ row)
     off = abs(t - round(t))
     ang = math.degrees(math.atan2(row[1], row[0])) % 180.0
@@ -326,27 +328,39 @@ def _describe_2d(b: np.ndarray, score: float, z: float, base: dict) -> Lattice:
 # PPTBF starting points
 # --------------------------------------------------------------------------------------------------------------
 
-#: lattice of cell centres of each tiling family in domain units (rows: basis vectors (x, y)), None for
-#: families whose cells do not repeat on a lattice (random row cuts: rows only; relaxed: irregular).
-#: Checked against renders in tests/test_lattice.py.
-DOMAIN_LATTICE: dict[int, tuple[tuple[float, float], tuple[float, float]] | None] = {}
+#: translation lattices of each tiling family's layout in domain units (rows: basis vectors (x, y)); a
+#: family may list alternatives (the 3:1 herringbones show different near-lattices at different aspect ratios).
+#: Families 6-9 (random cuts along rows) repeat along their rows only. Checked against renders in tests.
+Basis = tuple[tuple[float, float], tuple[float, float]]
+DOMAIN_LATTICE: dict[int, tuple[Basis, ...]] = {}
 #: families with a lattice of rows only (random cuts along each row): row spacing 1 domain unit along y
 ROW_FAMILIES = (6, 7, 8, 9)
 
 
 def _fill_domain_lattices() -> None:
-    """Square grid, half and third bonds, herringbones, Pythagorean and pavement lattices (measured once,
-    written here; tests render each and compare)."""
+    """Square grids, half and third bonds, herringbones, Pythagorean and pavement layouts (measured on renders
+    with aspect ratios 0.8-1.3, written here; tests render each and compare)."""
     square = ((1.0, 0.0), (0.0, 1.0))
-    DOMAIN_LATTICE.update({t: square for t in (0, 1, 2, 3, 14, 15, 16, 17)})
+    DOMAIN_LATTICE.update({t: (square,) for t in (0, 1, 14, 15, 16, 17)})   # relaxed 2-3 are irregular
+    herring2 = ((0.25, 0.25), (-0.5, 0.5))
+    herring3 = (((0.5, -0.5), (0.5, 0.5)), ((-2.0 / 3.0, 1.0 / 3.0), (0.0, 1.0)),
+                ((1.0 / 6.0, 1.0 / 6.0), (0.5, -0.5)))
     DOMAIN_LATTICE.update({
-        4: ((1.0, 0.0), (0.5, 1.0)), 5: ((1.0, 0.0), (1.0 / 3.0, 1.0)),
-        10: ((0.25, 0.25), (0.5, -0.5)), 11: ((0.25, 0.25), (0.5, -0.5)),
-        12: ((1.0 / 6.0, 1.0 / 6.0), (0.5, -0.5)), 13: ((1.0 / 6.0, 1.0 / 6.0), (0.5, -0.5)),
+        4: (((1.0, 0.0), (0.5, 1.0)),), 5: (((1.0, 0.0), (1.0 / 3.0, 1.0)),),
+        10: (herring2,), 11: (herring2,), 12: herring3, 13: herring3,
     })
 
 
 _fill_domain_lattices()
+
+
+def domain_period(tiling: int) -> float:
+    """Length of the shortest cell-to-cell vector of a family's (first) lattice in domain units (1: rows)."""
+    alts = DOMAIN_LATTICE.get(int(tiling))
+    if not alts:
+        return 1.0
+    return float(min(math.hypot(*alts[0][0]), math.hypot(*alts[0][1])))
+
 
 #: crisp cellular-window template (the layout's cells, no features): entries set on top of a base vector
 CELL_TEMPLATE: dict[str, float] = {
@@ -398,6 +412,28 @@ def _as_layout(M: np.ndarray) -> tuple[float, float, float]:
     return r, A / r if r > 0 else -1.0, alpha
 
 
+#: the family lattice itself and its index-2 super-lattices: a measured lattice can be one of those (a layout whose
+#: offset alternates from row to row repeats every second row; 2:1 herringbones at some aspect ratios)
+SUPERCELLS = (np.eye(2), np.diag([2.0, 1.0]), np.diag([1.0, 2.0]), np.array([[1.0, 1.0], [-1.0, 1.0]]))
+
+
+def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, width: int) -> list[LatticeMatch]:
+    """Layouts (r, a, alpha) with r R(-alpha) diag(a, 1) Dm U = T for small unimodular U, within max_error."""
+    out = []
+    tn = float(np.linalg.norm(T))
+    for U in _UNIMODULAR:
+        M = T @ U @ np.linalg.inv(Dm)
+        r, a, alpha = _as_layout(M)
+        if r <= 1.0 or a <= 0.05 or a > 10.0 or r * max(a, 1.0) > 4 * width:
+            continue
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        Mf = np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
+        err = float(np.linalg.norm(Mf @ Dm @ np.linalg.inv(U) - T)) / tn
+        if err <= max_error:
+            out.append(LatticeMatch(tiling, r, a, (alpha / math.pi) % 2.0, err))
+    return out
+
+
 def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> list[LatticeMatch]:
     """Tiling families and layouts whose cell lattice equals the target's within `max_error` (relative), best
     first, one per (family, resolution/aspect/rotation) found."""
@@ -413,21 +449,10 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
                 out.append(LatticeMatch(t, r, aspect, (alpha / math.pi) % 2.0, 0.0))
         return out
     T = np.array(lat.vectors, dtype=np.float64).T                 # columns: target basis (pixels)
-    tn = float(np.linalg.norm(T))
-    for t, D in DOMAIN_LATTICE.items():
-        if D is None:
-            continue
-        Dm = np.array(D, dtype=np.float64).T                      # columns: domain basis
-        for U in _UNIMODULAR:
-            M = T @ U @ np.linalg.inv(Dm)
-            r, a, alpha = _as_layout(M)
-            if r <= 1.0 or a <= 0.05 or a > 10.0 or r * max(a, 1.0) > 4 * width:
-                continue
-            ca, sa = math.cos(alpha), math.sin(alpha)
-            Mf = np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
-            err = float(np.linalg.norm(Mf @ Dm @ np.linalg.inv(U) - T)) / tn
-            if err <= max_error:
-                out.append(LatticeMatch(t, r, a, (alpha / math.pi) % 2.0, err))
+    for t, alts in DOMAIN_LATTICE.items():
+        for D in alts:
+            for S in SUPERCELLS:
+                out += _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width)
     out.sort(key=lambda m: (m.error, m.aspect + 1.0 / m.aspect))
     uniq: list[LatticeMatch] = []
     for m in out:   # the same layout reached through several bases: keep one
@@ -436,7 +461,22 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
                    and min(abs(u.rotation - m.rotation) % 1.0, 1.0 - abs(u.rotation - m.rotation) % 1.0) < 0.01
                    for u in uniq):
             uniq.append(m)
-    return uniq
+    return _round_robin(uniq)
+
+
+def _round_robin(matches: list[LatticeMatch]) -> list[LatticeMatch]:
+    """Matches reordered so that the first ones cover different kinds of layout (TILING_GROUPS): a lattice
+    that a square grid matches is often matched by a half bond, a herringbone... and the loss must see each."""
+    groups: dict[str, list[LatticeMatch]] = {g: [] for g in GROUP_ORDER}
+    for m in matches:
+        groups[TILING_GROUPS[m.tiling]].append(m)
+    out: list[LatticeMatch] = []
+    queues = sorted((q for q in groups.values() if q), key=lambda q: q[0].error)   # stable: GROUP_ORDER on ties
+    while any(queues):
+        for q in queues:
+            if q:
+                out.append(q.pop(0))
+    return out
 
 
 def layout_params(m: LatticeMatch, white_fraction: float, larp: float = 1.0,
@@ -471,6 +511,10 @@ TILING_GROUPS: dict[int, str] = {0: "square", 1: "square", 2: "relaxed", 3: "rel
                                  14: "pythagorean", 15: "pythagorean", 16: "pavement", 17: "pavement"}
 
 
+#: preference among layout kinds that match a lattice equally well (starts are tried in this order)
+GROUP_ORDER = ("square", "half-bond", "third-bond", "herringbone", "pavement", "pythagorean", "rows", "relaxed")
+
+
 def same_family(a: int, b: int) -> bool:
     """Tilings a and b make the same kind of layout (TILING_GROUPS)."""
     return TILING_GROUPS[int(a)] == TILING_GROUPS[int(b)]
@@ -480,6 +524,7 @@ def _short_vectors(lat: Lattice) -> np.ndarray:
     """The lattice's short vectors (basis, their sum and difference, and negatives), (n, 2)."""
     v = np.array(lat.vectors, dtype=np.float64)
     if len(v) == 2:
+        v = _reduce(v)
         v = np.concatenate([v, [v[0] + v[1], v[0] - v[1]]])
     return np.concatenate([v, -v])
 
@@ -488,11 +533,13 @@ def compare_lattices(target: Lattice, other: Lattice) -> tuple[float, float]:
     """(relative error of the period, angle error in degrees) of `other`'s lattice against `target`'s: for each
     of the target's basis vectors, the closest short vector of `other`; the worst of the two (inf when either
     has no lattice or their kinds differ in dimension)."""
-    if not target.vectors or not other.vectors:
+    if not target.vectors or not other.vectors or len(target.vectors) != len(other.vectors):
         return math.inf, math.inf
     cand = _short_vectors(other)
+    tv = np.array(target.vectors, dtype=np.float64)
+    tv = _reduce(tv) if len(tv) == 2 else tv
     per, ang = 0.0, 0.0
-    for t in np.array(target.vectors, dtype=np.float64):
+    for t in tv:
         k = int(np.argmin(np.linalg.norm(cand - t[None], axis=1)))
         c = cand[k]
         per = max(per, abs(np.linalg.norm(c) - np.linalg.norm(t)) / np.linalg.norm(t))

@@ -1,0 +1,114 @@
+"""Lattice analysis of masks (workers.lattice): tiling lattices against renders, recovered periods, angles and
+row offsets, no lattice on noise, tiling matches, network width, real structure masks."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from pptbf_db import pptbf as pp
+from workers import lattice as L
+from workers.errors import InputError
+
+DATA = Path(__file__).resolve().parent / "data" / "structure_masks"
+
+
+def _render(tiling: int, res: float, aspect: float = 1.0, rotation: float = 0.0, white: float = 0.75,
+            size: int = 256, jitter: float = 0.0) -> np.ndarray:
+    p = L.layout_params(L.LatticeMatch(tiling, res, aspect, rotation, 0.0), white)
+    p[pp.PARAM_INDEX["jitter"]] = jitter
+    return pp.render_mask(p, size, size, shift=(1.3, 2.1))
+
+
+def _expected(tiling: int, res: float, aspect: float, rotation: float) -> list[L.Lattice]:
+    """The pixel lattices M D of DOMAIN_LATTICE[tiling] (each alternative) under (res, aspect, rotation)."""
+    a = math.pi * rotation
+    ca, sa = math.cos(a), math.sin(a)
+    M = np.array([[aspect * res * ca, res * sa], [-aspect * res * sa, res * ca]])
+    out = []
+    for D in L.DOMAIN_LATTICE[tiling]:
+        D = np.array(D, dtype=np.float64)
+        out.append(L.Lattice(kind="2d", vectors=[tuple(M @ D[0]), tuple(M @ D[1])], regularity=1.0))
+    return out
+
+
+@pytest.mark.parametrize("tiling", [0, 4, 5, 10, 16])
+def test_domain_lattices_match_renders(tiling):
+    """Each family's DOMAIN_LATTICE is what its render shows (period within 3 %, angle within 2 degrees)."""
+    res, aspect, rot = 24.0, 1.25, 0.1
+    lat = L.analyse_lattice(_render(tiling, res, aspect, rot))
+    assert lat.kind == "2d"
+    errs = [L.compare_lattices(e, lat) for e in _expected(tiling, int(res), aspect, rot)]
+    assert any(per < 0.03 and ang < 2.0 for per, ang in errs) or any(
+        m.tiling == tiling and abs(m.resolution - int(res)) < 0.05 * res and abs(m.aspect - aspect) < 0.05 * aspect
+        for m in L.match_tilings(lat)), (lat.vectors, errs)
+
+
+def test_running_bond_rows_offset_orientation_and_match():
+    m = _render(4, 18, aspect=2.2, rotation=0.05, white=0.8)
+    lat = L.analyse_lattice(m)
+    assert lat.kind == "2d" and lat.significance >= 2.8
+    assert abs(lat.row_offset - 0.5) < 0.03
+    assert abs(lat.row_spacing - 18.0) / 18.0 < 0.03
+    angle = math.degrees(math.pi * 0.05)          # rows turn by -alpha in image coordinates (y down)
+    assert min(abs(lat.orientation_deg - (180.0 - angle)), abs(lat.orientation_deg + angle)) < 1.5
+    assert any(mt.tiling == 4 and abs(mt.resolution - 18.0) / 18.0 < 0.03 and abs(mt.aspect - 2.2) / 2.2 < 0.03
+               for mt in L.match_tilings(lat)[:12])
+    assert L.pptbf_starts(lat, 256), "a lattice gives starting vectors"
+
+
+def test_thirds_offset_and_square_grid_match():
+    lat = L.analyse_lattice(_render(5, 20, aspect=1.5))
+    assert abs(lat.row_offset - 1.0 / 3.0) < 0.03
+    sq = L.analyse_lattice(_render(0, 16, aspect=1.0, rotation=0.25))
+    assert abs(sq.row_offset) < 0.03 and abs(sq.period - 16.0) / 16.0 < 0.03
+    assert any(m.tiling == 0 and abs(m.resolution - 16) < 0.5 for m in L.match_tilings(sq))
+
+
+def test_no_lattice_on_noise_and_rust():
+    rng = np.random.default_rng(0)
+    blobs = ndimage.gaussian_filter(rng.standard_normal((256, 256)), 3.0, mode="wrap")
+    lat = L.analyse_lattice(blobs > 0.0)
+    assert lat.kind == "none" and lat.significance < 2.8
+    assert L.match_tilings(lat) == [] and L.pptbf_starts(lat, 256) == []
+    from skimage.io import imread
+
+    rust = imread(DATA / "rusty_metal_rust.png") > 127
+    assert L.analyse_lattice(rust[::2, ::2]).kind == "none"
+
+
+def test_network_width_and_polarity():
+    yy, xx = np.mgrid[:256, :256]
+    grid = (yy % 20 < 3) | (xx % 32 < 3)       # white lines 3 px wide around 17x29 cells
+    lat = L.analyse_lattice(grid)
+    assert lat.network_is_white is True
+    assert 2.0 <= lat.network_width <= 4.0
+    assert L.analyse_lattice(~grid).network_is_white is False
+    per, ang = L.compare_lattices(L.Lattice("2d", [(32.0, 0.0), (0.0, 20.0)], 1.0), lat)
+    assert per < 0.02 and ang < 1.0
+
+
+def test_real_brick_wall_row_spacing_matches_mortar_profile():
+    """The castle mortar mask's lattice: its row spacing equals the period of the mortar-per-row profile (an
+    independent 1-D estimate), and bricks are laid in a half bond."""
+    from skimage.io import imread
+
+    m = imread(DATA / "castle_brick_mortar.png") > 127
+    lat = L.analyse_lattice(m)
+    assert lat.kind == "2d"
+    prof = m.mean(axis=1) - m.mean()
+    spec = np.abs(np.fft.rfft(prof)) ** 2
+    k = int(np.argmax(spec[4:])) + 4
+    assert abs(lat.row_spacing - m.shape[0] / k) / (m.shape[0] / k) < 0.06
+    assert abs(lat.row_offset - 0.5) < 0.12
+    assert abs(lat.orientation_deg % 180.0) < 5.0 or abs(lat.orientation_deg - 180.0) < 5.0
+
+
+def test_bad_input():
+    with pytest.raises(InputError, match="uniform"):
+        L.analyse_lattice(np.zeros((64, 64), bool))
+    with pytest.raises(InputError, match="16x16"):
+        L.analyse_lattice(np.zeros((8, 64), bool))
