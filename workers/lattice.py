@@ -382,6 +382,7 @@ class LatticeMatch:
     aspect: float
     rotation: float           # in the parameter's units (alpha / pi, in [0, 2))
     error: float              # relative error of the matched lattice (0 = exact)
+    supercell: bool = False   # the target lattice is an index-2 super-lattice of the family's (a weaker match)
 
 
 def _unimodular(k: int = 2) -> list[np.ndarray]:
@@ -412,12 +413,29 @@ def _as_layout(M: np.ndarray) -> tuple[float, float, float]:
     return r, A / r if r > 0 else -1.0, alpha
 
 
+#: pseudo error of row-family layouts fitted to a 2-D lattice (rows with random cuts only share its rows)
+ROW_MATCH_ERROR = 0.05
+
+
+def _row_layouts(lat: Lattice) -> list[LatticeMatch]:
+    """Random-cut row families along the rows of a 2-D lattice: spacing = row spacing, aspect = the lattice's
+    period along the row over the spacing (domain x runs along the rows: (cos a, -sin a) = row direction)."""
+    if lat.row_vector is None or not lat.row_spacing:
+        return []
+    u = np.array(lat.row_vector, dtype=np.float64)
+    alpha = math.atan2(-u[1], u[0])
+    aspect = float(np.linalg.norm(u)) / lat.row_spacing
+    return [LatticeMatch(t, lat.row_spacing, aspect, (alpha / math.pi) % 2.0, ROW_MATCH_ERROR)
+            for t in ROW_FAMILIES]
+
+
 #: the family lattice itself and its index-2 super-lattices: a measured lattice can be one of those (a layout whose
 #: offset alternates from row to row repeats every second row; 2:1 herringbones at some aspect ratios)
 SUPERCELLS = (np.eye(2), np.diag([2.0, 1.0]), np.diag([1.0, 2.0]), np.array([[1.0, 1.0], [-1.0, 1.0]]))
 
 
-def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, width: int) -> list[LatticeMatch]:
+def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, width: int,
+                 supercell: bool = False) -> list[LatticeMatch]:
     """Layouts (r, a, alpha) with r R(-alpha) diag(a, 1) Dm U = T for small unimodular U, within max_error."""
     out = []
     tn = float(np.linalg.norm(T))
@@ -430,7 +448,7 @@ def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, w
         Mf = np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
         err = float(np.linalg.norm(Mf @ Dm @ np.linalg.inv(U) - T)) / tn
         if err <= max_error:
-            out.append(LatticeMatch(tiling, r, a, (alpha / math.pi) % 2.0, err))
+            out.append(LatticeMatch(tiling, r, a, (alpha / math.pi) % 2.0, err, supercell))
     return out
 
 
@@ -449,11 +467,12 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
                 out.append(LatticeMatch(t, r, aspect, (alpha / math.pi) % 2.0, 0.0))
         return out
     T = np.array(lat.vectors, dtype=np.float64).T                 # columns: target basis (pixels)
+    out += _row_layouts(lat)
     for t, alts in DOMAIN_LATTICE.items():
         for D in alts:
-            for S in SUPERCELLS:
-                out += _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width)
-    out.sort(key=lambda m: (m.error, m.aspect + 1.0 / m.aspect))
+            for k, S in enumerate(SUPERCELLS):
+                out += _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width, k > 0)
+    out.sort(key=lambda m: (m.supercell, round(m.error, 3), _misalignment(m, lat), m.aspect + 1.0 / m.aspect))
     uniq: list[LatticeMatch] = []
     for m in out:   # the same layout reached through several bases: keep one
         if not any(u.tiling == m.tiling and abs(u.resolution - m.resolution) < 0.02 * m.resolution
@@ -464,6 +483,16 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
     return _round_robin(uniq)
 
 
+def _misalignment(m: LatticeMatch, lat: Lattice) -> float:
+    """Angle (radians, 0..pi/2) between a layout's rows (domain x axis) and the lattice's row direction: among
+    equally good layouts, bricks lie along the courses."""
+    if lat.row_vector is None:
+        return 0.0
+    a = math.pi * m.rotation
+    d = abs(math.atan2(-math.sin(a), math.cos(a)) - math.atan2(lat.row_vector[1], lat.row_vector[0])) % math.pi
+    return min(d, math.pi - d)
+
+
 def _round_robin(matches: list[LatticeMatch]) -> list[LatticeMatch]:
     """Matches reordered so that the first ones cover different kinds of layout (TILING_GROUPS): a lattice
     that a square grid matches is often matched by a half bond, a herringbone... and the loss must see each."""
@@ -471,7 +500,7 @@ def _round_robin(matches: list[LatticeMatch]) -> list[LatticeMatch]:
     for m in matches:
         groups[TILING_GROUPS[m.tiling]].append(m)
     out: list[LatticeMatch] = []
-    queues = sorted((q for q in groups.values() if q), key=lambda q: q[0].error)   # stable: GROUP_ORDER on ties
+    queues = sorted((q for q in groups.values() if q), key=lambda q: (q[0].supercell, round(q[0].error, 3)))
     while any(queues):
         for q in queues:
             if q:
@@ -530,11 +559,18 @@ def _short_vectors(lat: Lattice) -> np.ndarray:
 
 
 def compare_lattices(target: Lattice, other: Lattice) -> tuple[float, float]:
-    """(relative error of the period, angle error in degrees) of `other`'s lattice against `target`'s: for each
-    of the target's basis vectors, the closest short vector of `other`; the worst of the two (inf when either
-    has no lattice or their kinds differ in dimension)."""
+    """(relative error of the period, angle error in degrees) of `other`'s lattice against `target`'s, both
+    ways: each reduced basis vector of one against the closest short vector of the other; the worst (a denser
+    or sparser lattice that shares some vectors fails). inf when either has no lattice or their kinds differ."""
     if not target.vectors or not other.vectors or len(target.vectors) != len(other.vectors):
         return math.inf, math.inf
+    p1, a1 = _one_way(target, other)
+    p2, a2 = _one_way(other, target)
+    return max(p1, p2), max(a1, a2)
+
+
+def _one_way(target: Lattice, other: Lattice) -> tuple[float, float]:
+    """compare_lattices in one direction: target's reduced basis against other's short vectors."""
     cand = _short_vectors(other)
     tv = np.array(target.vectors, dtype=np.float64)
     tv = _reduce(tv) if len(tv) == 2 else tv
