@@ -79,3 +79,23 @@ def test_mask_fit_and_render_commands(tmp_path):
     assert main(["mask", "render", str(bad), "--size", "64x64", "--out", str(tmp_path / "x.png")]) == 2
     flat = write_image(tmp_path / "flat.png", np.zeros((64, 64), np.float32), bits=8)
     assert main(["mask", "fit", str(flat), "--out", str(tmp_path / "f.json")]) == 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["castle_brick_mortar", "metal_plate_seams"])
+def test_real_structure_mask_keeps_its_lattice(bundled_index, name):
+    """Real structure masks (tests/data/structure_masks, made from the shared CC0 materials by make.py there):
+    a fresh realisation of the fit has the target's lattice, period within 10 %."""
+    from pathlib import Path
+
+    from skimage.io import imread
+
+    from workers.masks import downsample_mask
+
+    m = imread(Path(__file__).resolve().parent / "data" / "structure_masks" / f"{name}.png") > 127
+    fit = fit_pptbf_mask(m, bundled_index, config=MaskFitConfig())
+    target = downsample_mask(m, 256, 256)
+    out = fit.render(256, 256, shift=(11.1, 5.5))
+    lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
+    assert lo.kind == "2d", lo
+    assert abs(lo.period - lt.period) / lt.period <= 0.10, (lt.vectors, lo.vectors)

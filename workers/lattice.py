@@ -280,7 +280,7 @@ def analyse_lattice(mask, config: LatticeConfig | None = None) -> Lattice:
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
     # points carry at least rows_ratio of the strongest vector's contrast (real walls drift from row to row)
     if max(z1, z2) >= cfg.min_significance and best2 is not None and best2[0] >= cfg.rows_ratio * s1:
-        return _describe_2d(ac, best2[1], best2[0], max(z1, z2), base)
+        return _describe_2d(ac, best2[1], best2[0], max(z1, z2), base, radius)
     if v is not None:
         if z1 >= cfg.min_significance:
             ang = math.degrees(math.atan2(v[1], v[0])) + 90.0
@@ -302,7 +302,7 @@ def _refine_rows(ac: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:
     return (obs[good] * ks[good, None]).sum(axis=0) / (ks[good] ** 2).sum()
 
 
-def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: dict) -> Lattice:
+def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: dict, radius: float) -> Lattice:
     """Rows, row offset and orientation of a reduced 2-D basis: rows run along the short lattice vector (basis,
     sum or difference) along which the autocorrelation stays highest between lattice points (continuous mortar
     lines of a brick course keep matching along the course, not across it)."""
@@ -319,9 +319,29 @@ def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: di
     t = float(other @ row) / float(row @ row)
     off = abs(t - round(t))
     ang = math.degrees(math.atan2(row[1], row[0])) % 180.0
+    if _cuts_random(ac, b, row, radius):
+        normal = np.array([-row[1], row[0]]) / float(np.linalg.norm(row)) * spacing
+        normal = normal if normal[1] > 0 or (normal[1] == 0 and normal[0] > 0) else -normal
+        return Lattice(kind="rows", vectors=[(float(normal[0]), float(normal[1]))], regularity=float(score),
+                       significance=float(z), row_vector=(float(row[0]), float(row[1])), row_spacing=float(spacing),
+                       orientation_deg=float(ang), **base)
     return Lattice(kind="2d", vectors=[(float(b[0][0]), float(b[0][1])), (float(b[1][0]), float(b[1][1]))],
-                   regularity=float(score), significance=float(z), row_vector=(float(row[0]), float(row[1])), row_spacing=float(spacing),
-                   row_offset=float(off), orientation_deg=float(ang), **base)
+                   regularity=float(score), significance=float(z), row_vector=(float(row[0]), float(row[1])),
+                   row_spacing=float(spacing), row_offset=float(off), orientation_deg=float(ang), **base)
+
+
+#: a 2-D lattice whose points stand less than this share of their height above the row ridge is rows only
+RIDGE_SHARE = 0.2
+
+
+def _cuts_random(ac: np.ndarray, b: np.ndarray, row: np.ndarray, radius: float) -> bool:
+    """True when the lattice's points barely rise above the ridge of their rows (the autocorrelation half a
+    period along the row): courses repeat but the cuts along them do not (random brick lengths)."""
+    _, p = _lattice_points(b, min(radius, 2.2 * float(max(np.linalg.norm(b[0]), np.linalg.norm(b[1])))))
+    if not len(p):
+        return False
+    at, mid = _sample(ac, p), _sample(ac, p + 0.5 * row[None])
+    return float((at - mid).mean()) < RIDGE_SHARE * max(float(np.abs(at).mean()), 1e-6)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -462,8 +482,10 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         v = np.array(lat.vectors[0])
         alpha = math.atan2(v[0], v[1])            # domain y axis (rows stacked along it) -> v
         r = float(np.linalg.norm(v))
-        for t in ROW_FAMILIES + (0, 4):
-            for aspect in (1.0, 2.0, 3.0):
+        aspects = (1.0, 2.0, 3.0) if lat.row_vector is None else \
+            (float(np.linalg.norm(lat.row_vector)) / r, 1.0, 2.0)
+        for aspect in aspects:
+            for t in ROW_FAMILIES + (4, 0):
                 out.append(LatticeMatch(t, r, aspect, (alpha / math.pi) % 2.0, 0.0))
         return out
     T = np.array(lat.vectors, dtype=np.float64).T                 # columns: target basis (pixels)
