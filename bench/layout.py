@@ -88,9 +88,17 @@ def scores(loss: GramMaskLoss, params, complement: bool) -> tuple[float, float]:
     return g, t
 
 
-def fresh(fit, size: int, shift) -> np.ndarray:
-    """A fresh realisation of a fit at its own size."""
-    return fit.render(size, size, shift=shift)
+def fit_and_compare(mask: np.ndarray, target: np.ndarray, index, args, seed: int):
+    """Fit `mask` (any size) from scratch; (fit, seconds, target lattice, fresh realisation's lattice, period
+    error, angle error, loss at SIZE) with `target` the mask at SIZE."""
+    cfg = MaskFitConfig(max_evals=args.evals, time_budget_s=args.budget, seed=seed)
+    t0 = time.perf_counter()
+    fit = fit_pptbf_mask(mask, index, config=cfg)
+    secs = time.perf_counter() - t0
+    out = fit.render(SIZE, SIZE, shift=FRESH[0])
+    lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
+    per, ang = L.compare_lattices(lt, lo)
+    return fit, secs, out, lt, lo, per, ang, GramMaskLoss(target, factor=loss_factor(SIZE))
 
 
 def run_synthetic(args, index, panels: Path | None) -> list[dict]:
@@ -104,14 +112,7 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
         t = fams[k % len(fams)]
         p = synthetic_target(rng, t)
         target = pp.render_mask(p, SIZE, SIZE, shift=tuple(rng.uniform(0, 8, 2)))
-        cfg = MaskFitConfig(max_evals=args.evals, time_budget_s=args.budget, seed=k)
-        t0 = time.perf_counter()
-        fit = fit_pptbf_mask(target, index, config=cfg)
-        secs = time.perf_counter() - t0
-        out = fresh(fit, SIZE, FRESH[0])
-        lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
-        per, ang = L.compare_lattices(lt, lo)
-        loss = GramMaskLoss(target, factor=loss_factor(SIZE))
+        fit, secs, out, lt, lo, per, ang, loss = fit_and_compare(target, target, index, args, k)
         (d_fit, l_fit), (d_true, l_true) = scores(loss, fit.params, fit.complement), scores(loss, p, False)
         row = dict(k=k, tiling=t, res=int(p[3]), fit_tiling=int(fit.params[1]), period_err=per, angle_err=ang,
                    family=L.same_family(t, int(fit.params[1])), ratio=d_fit / d_true, ratio_loss=l_fit / l_true,
@@ -148,14 +149,7 @@ def run_real(args, index, panels: Path | None) -> list[dict]:
         m = imread(folder / f"{name}.png")
         m = (m[..., 0] if m.ndim == 3 else m) > 127
         target = downsample_mask(m, SIZE, SIZE)
-        cfg = MaskFitConfig(max_evals=args.evals, time_budget_s=args.budget, seed=0)
-        t0 = time.perf_counter()
-        fit = fit_pptbf_mask(m, index, config=cfg)
-        secs = time.perf_counter() - t0
-        out = fresh(fit, SIZE, FRESH[0])
-        lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
-        per, ang = L.compare_lattices(lt, lo)
-        loss = GramMaskLoss(target, factor=loss_factor(SIZE))
+        fit, secs, out, lt, lo, per, ang, loss = fit_and_compare(m, target, index, args, 0)
         d_fit, l_fit = scores(loss, fit.params, fit.complement)
         hand, l_hand = float("nan"), float("nan")
         imgs = [m, _up(out, m.shape[0])]

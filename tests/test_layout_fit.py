@@ -31,7 +31,7 @@ def test_running_bond_comes_back_as_running_bond(bundled_index):
     fresh realisations of the true parameters score."""
     p, target = _bond()
     fit = fit_pptbf_mask(target, bundled_index, config=MaskFitConfig(max_evals=70, time_budget_s=90))
-    assert fit.meta["method"] == "lattice" and fit.meta["loss"] == "vgg19"
+    assert fit.meta["method"] == "lattice" and fit.meta["loss"] == "vgg19+layout"
     fresh = [(11.1, 5.5), (21.0, 3.0)]
     out = fit.render(shift=fresh[0])
     per, ang = L.compare_lattices(L.analyse_lattice(target), L.analyse_lattice(out))

@@ -27,7 +27,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -361,7 +361,9 @@ def _fill_domain_lattices() -> None:
     """Square grids, half and third bonds, herringbones, Pythagorean and pavement layouts (measured on renders
     with aspect ratios 0.8-1.3, written here; tests render each and compare)."""
     square = ((1.0, 0.0), (0.0, 1.0))
-    DOMAIN_LATTICE.update({t: (square,) for t in (0, 1, 14, 15, 16, 17)})   # relaxed 2-3 are irregular
+    DOMAIN_LATTICE.update({t: (square,) for t in (0, 1, 16, 17)})   # relaxed 2-3 are irregular
+    pythagorean = ((0.4, 0.2), (-0.2, 0.4))     # big and small squares: (a, b), (-b, a); the unit square repeats too
+    DOMAIN_LATTICE.update({t: (pythagorean, square) for t in (14, 15)})
     herring2 = ((0.25, 0.25), (-0.5, 0.5))
     herring3 = (((0.5, -0.5), (0.5, 0.5)), ((-2.0 / 3.0, 1.0 / 3.0), (0.0, 1.0)),
                 ((1.0 / 6.0, 1.0 / 6.0), (0.5, -0.5)))
@@ -433,6 +435,8 @@ def _as_layout(M: np.ndarray) -> tuple[float, float, float]:
     return r, A / r if r > 0 else -1.0, alpha
 
 
+#: added to the error of a family's later lattice alternatives (the first is the family's own layout)
+ALTERNATIVE_PENALTY = 0.01
 #: pseudo error of row-family layouts fitted to a 2-D lattice (rows with random cuts only share its rows)
 ROW_MATCH_ERROR = 0.05
 
@@ -491,9 +495,10 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
     T = np.array(lat.vectors, dtype=np.float64).T                 # columns: target basis (pixels)
     out += _row_layouts(lat)
     for t, alts in DOMAIN_LATTICE.items():
-        for D in alts:
+        for j, D in enumerate(alts):
             for k, S in enumerate(SUPERCELLS):
-                out += _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width, k > 0)
+                found = _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width, k > 0)
+                out += [replace(m, error=m.error + ALTERNATIVE_PENALTY * j) for m in found]
     out.sort(key=lambda m: (m.supercell, round(m.error, 3), _misalignment(m, lat), m.aspect + 1.0 / m.aspect))
     uniq: list[LatticeMatch] = []
     for m in out:   # the same layout reached through several bases: keep one
@@ -515,9 +520,10 @@ def _misalignment(m: LatticeMatch, lat: Lattice) -> float:
     return min(d, math.pi - d)
 
 
-def _round_robin(matches: list[LatticeMatch]) -> list[LatticeMatch]:
-    """Matches reordered so that the first ones cover different kinds of layout (TILING_GROUPS): a lattice
-    that a square grid matches is often matched by a half bond, a herringbone... and the loss must see each."""
+def _round_robin(matches: list[LatticeMatch], per_round: int = 2) -> list[LatticeMatch]:
+    """Matches reordered so that the first ones cover different kinds of layout (TILING_GROUPS), `per_round`
+    of each kind at a time: a lattice that a square grid matches is often matched by a half bond, a
+    herringbone... and the same lattice by a layout turned by 90 degrees; the loss must see each."""
     groups: dict[str, list[LatticeMatch]] = {g: [] for g in GROUP_ORDER}
     for m in matches:
         groups[TILING_GROUPS[m.tiling]].append(m)
@@ -525,8 +531,8 @@ def _round_robin(matches: list[LatticeMatch]) -> list[LatticeMatch]:
     queues = sorted((q for q in groups.values() if q), key=lambda q: (q[0].supercell, round(q[0].error, 3)))
     while any(queues):
         for q in queues:
-            if q:
-                out.append(q.pop(0))
+            out += q[:per_round]
+            del q[:per_round]
     return out
 
 
@@ -583,7 +589,12 @@ def _short_vectors(lat: Lattice) -> np.ndarray:
 def compare_lattices(target: Lattice, other: Lattice) -> tuple[float, float]:
     """(relative error of the period, angle error in degrees) of `other`'s lattice against `target`'s, both
     ways: each reduced basis vector of one against the closest short vector of the other; the worst (a denser
-    or sparser lattice that shares some vectors fails). inf when either has no lattice or their kinds differ."""
+    or sparser lattice that shares some vectors fails). When either is rows (random cuts), the row spacing and
+    the rows' orientation. inf when either has no lattice or their kinds differ otherwise."""
+    if "rows" in (target.kind, other.kind) and target.row_spacing and other.row_spacing:
+        # courses with random cuts: what repeats is the row spacing and the rows' direction
+        d = abs(float(target.orientation_deg) - float(other.orientation_deg)) % 180.0
+        return abs(other.row_spacing - target.row_spacing) / target.row_spacing, min(d, 180.0 - d)
     if not target.vectors or not other.vectors or len(target.vectors) != len(other.vectors):
         return math.inf, math.inf
     p1, a1 = _one_way(target, other)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -159,6 +160,67 @@ def _window_grid(budget: Budget, x0: np.ndarray) -> np.ndarray:
     return best
 
 
+@dataclass
+class _Starts:
+    """Scored starting vectors (loss, complement, params, kind) best first, and the verbatim query result."""
+
+    scored: list[tuple[float, bool, np.ndarray, str]]
+    history: list[float]
+    query: tuple | None = None          # (best database match, its complement)
+    loss_query: float = float("nan")
+
+
+def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: MaskFitConfig,
+                  deadline: float) -> _Starts:
+    """Score the lattice starts (both polarities: a cellular window is high inside cells, so a white network
+    needs the complement, but real masks are often broken networks on both sides) and the database's nearest
+    entries (both polarities, threshold from the target)."""
+    out = _Starts([], [])
+    starts = [(p, c, "lattice") for p in pptbf_starts(lat, target.shape[1], max_matches=cfg.lattice_starts)
+              for c in (bool(lat.network_is_white), not lat.network_is_white)]
+    if index is not None:
+        for compl in (False, True):
+            for mt in index.query(~target if compl else target, k=cfg.top_k, valid=valid):
+                out.query = out.query or (mt, compl)
+                starts.append((np.asarray(mt.params, np.float64), compl, "database"))
+    for p, compl, kind in starts:
+        if len(out.scored) >= cfg.max_evals or time.perf_counter() > deadline:
+            break
+        p = loss.with_threshold(p, compl)
+        out.scored.append((loss(p, compl), compl, p, kind))
+        out.history.append(min(s[0] for s in out.scored))
+    if out.query is not None:
+        out.loss_query = loss(out.query[0].params, out.query[1], threshold_from_target=False)
+    out.scored.sort(key=lambda s: s[0])
+    return out
+
+
+def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
+                  cfg: MaskFitConfig, seed: int) -> Budget:
+    """Layout frozen: the cell-shape grid, then the window entries by local search and sweeps."""
+    own, compl, x0, _ = start
+    b = Budget(lambda q, c=compl: loss(q, c), max(10, max_evals), deadline)
+    b.seed(x0, own)
+    try:
+        x0 = _window_grid(b, x0)
+    except BudgetExhausted:
+        pass
+    optimise(b.loss, x0, width, OptSettings(rounds=3, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.15,
+                                            seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
+    return b
+
+
+def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,
+            seed: int) -> Budget:
+    """Everything free, small steps, from the best candidate so far."""
+    own, compl, x0 = best[0], best[1], best[2]
+    b = Budget(lambda q, c=compl: loss(q, c), max(5, max_evals), deadline)
+    b.seed(x0, own)
+    optimise(b.loss, x0, width, OptSettings(rounds=2, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.03,
+                                            seed=seed + 1), budget=b)
+    return b
+
+
 def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice, cfg: MaskFitConfig,
                seed: int) -> MaskFit:
     """Lattice-first fit of a bool target (HxW at the fit resolution); see the module doc."""
@@ -166,80 +228,43 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     h, w = target.shape
     loss = GramMaskLoss(target, valid, shift=cfg.shift, factor=loss_factor(w), realisations=cfg.realisations)
     deadline = t0 + cfg.time_budget_s
-    budget_all = Budget(lambda q: 0.0, cfg.max_evals, deadline)   # only counts; each stage has its own cache
-    history: list[float] = []
-    scored: list[tuple[float, bool, np.ndarray, str]] = []
-
-    def score(p: np.ndarray, compl: bool, kind: str) -> None:
-        if budget_all.evaluations >= cfg.max_evals or time.perf_counter() > deadline:
-            return
-        p = loss.with_threshold(p, compl)
-        scored.append((loss(p, compl), compl, p, kind))
-        budget_all.evaluations += 1
-        history.append(min([s[0] for s in scored]))
-
-    # both polarities: a cellular window is high inside cells, so a white network (mortar) needs the complement,
-    # but real masks are often broken networks on both sides, so the loss decides
-    for p in pptbf_starts(lat, w, max_matches=cfg.lattice_starts):
-        for compl in (bool(lat.network_is_white), not lat.network_is_white):
-            score(p, compl, "lattice")
-    n_lattice = len(scored)
-    q_best, loss_query = None, float("nan")
-    if index is not None:
-        for compl in (False, True):
-            for mt in index.query(~target if compl else target, k=cfg.top_k, valid=valid):
-                if q_best is None:
-                    q_best = (mt, compl)
-                score(np.asarray(mt.params, np.float64), compl, "database")
-        if q_best is not None:
-            loss_query = loss(q_best[0].params, q_best[1], threshold_from_target=False)
-    scored.sort(key=lambda s: s[0])
-    logger.info("layout fit: %d lattice starts, best %.4f; best overall %.4f (%s)", n_lattice,
+    st = _score_starts(target, valid, index, lat, loss, cfg, deadline)
+    scored, history = st.scored, list(st.history)
+    n0 = len(scored) + (1 if st.query is not None else 0)
+    logger.info("layout fit: %d starts, best lattice start %.4f, best overall %.4f (%s)", len(scored),
                 min((s[0] for s in scored if s[3] == "lattice"), default=float("nan")), scored[0][0], scored[0][3])
     reserve = max(0, int(cfg.validate)) * 4
-    left = cfg.max_evals - budget_all.evaluations - reserve
-    per_eval = (time.perf_counter() - t0) / max(1, budget_all.evaluations)
+    left = cfg.max_evals - n0 - reserve
+    per_eval = (time.perf_counter() - t0) / max(1, n0)
     stage_deadline = deadline - reserve * per_eval * 2
     cands = [(s[0], s[1], s[2], None, True) for s in scored[:2]]
-    # window stage: layout frozen, from the best lattice start (or the best start when no lattice one is left)
+    # window stage from the best lattice start (the best start when no lattice one was scored)
     lat_best = next((s for s in scored if s[3] == "lattice"), scored[0])
-    _, compl, x0, _ = lat_best
-    b1 = Budget(lambda q, c=compl: loss(q, c), max(10, int(0.6 * left)),
-                t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0))
-    b1.seed(x0, lat_best[0])
-    try:
-        x0 = _window_grid(b1, x0)
-    except BudgetExhausted:
-        pass
-    optimise(b1.loss, x0, w, OptSettings(rounds=3, max_evals=b1.max_evals, algorithm=cfg.algorithm,
-                                         step=0.15, seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b1)
+    b1 = _window_stage(loss, lat_best, w, int(0.6 * left),
+                       t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0), cfg, seed)
     history += b1.history
-    cands.append((b1.best_loss, compl, b1.best_params, None, True))
-    # polish: everything free, small steps, from the best so far
+    cands.append((b1.best_loss, lat_best[1], b1.best_params, None, True))
     best = min(cands, key=lambda c: c[0])
-    b2 = Budget(lambda q, c=best[1]: loss(q, c), max(5, cfg.max_evals - budget_all.evaluations - b1.evaluations
-                                                     - reserve), stage_deadline)
-    b2.seed(best[2], best[0])
-    optimise(b2.loss, best[2], w, OptSettings(rounds=2, max_evals=b2.max_evals, algorithm=cfg.algorithm,
-                                              step=0.03, seed=seed + 1), budget=b2)
+    b2 = _polish(loss, best, w, left - b1.evaluations, stage_deadline, cfg, seed)
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, None, True))
     cands.sort(key=lambda c: c[0])
     n_val, val = 0, None
-    if cfg.validate > 0:
+    if cfg.validate > 0:      # the candidate best on fresh realisations
         params, own, complement, _, val, n_val = _validate(loss, cands[:4], cfg.validate)
     else:
         own, complement, params = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64)
     secs = time.perf_counter() - t0
-    evals = budget_all.evaluations + b1.evaluations + b2.evaluations + n_val
-    logger.info("PPTBF layout fit %dx%d (%s lattice, period %.1f px): VGG loss %.4f (best start) -> %.4f, "
+    evals = n0 + b1.evaluations + b2.evaluations + n_val
+    logger.info("PPTBF layout fit %dx%d (%s lattice, period %.1f px): loss %.4f (best start) -> %.4f, "
                 "%d evals, %.1f s%s", w, h, lat.kind, lat.period or 0.0, scored[0][0], own, evals, secs,
                 " (complement)" if complement else "")
+    q = st.query
     return MaskFit(params=pp.clip_params(params), complement=bool(complement),
-                   loss_query=float(loss_query if np.isfinite(loss_query) else scored[0][0]), loss_final=float(own),
-                   evaluations=int(evals), seconds=secs, history=[float(x) for x in np.minimum.accumulate(history)],
-                   fit_size=(w, h), shift=tuple(cfg.shift),
-                   entry_id=getattr(q_best[0], "entry_id", None) if q_best else None,
-                   meta={"method": "lattice", "loss": "vgg19", "white_fraction": loss.white,
+                   loss_query=float(st.loss_query if np.isfinite(st.loss_query) else scored[0][0]),
+                   loss_final=float(own), evaluations=int(evals), seconds=secs,
+                   history=[float(x) for x in np.minimum.accumulate(history)], fit_size=(w, h),
+                   shift=tuple(cfg.shift), entry_id=getattr(q[0], "entry_id", None) if q else None,
+                   meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
                          "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss)})

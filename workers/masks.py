@@ -89,7 +89,7 @@ class MaskFitConfig:
     validate: int = 2
     lattice: bool = True          # masks with a lattice (bricks, tiles): lattice-first fit with the VGG-19 loss
     layout_size: int = 256        # fit width (px) of that path (the mask's own when smaller)
-    lattice_starts: int = 12      # tiling/layout matches of the lattice tried as starts (each in both polarities)
+    lattice_starts: int = 14      # tiling/layout matches of the lattice tried as starts (each in both polarities)
     incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
     #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
