@@ -6,21 +6,26 @@ derivative-free search from a database neighbour rarely lands there (bricks beco
 measured first and the search starts on it:
 
 * ``analyse_lattice``: the periodic autocorrelation of the mask (one FFT); its local maxima are candidate lattice
-  vectors; the basis is the pair whose lattice points carry the highest mean autocorrelation, the smallest cell
-  among those within 10 % of the best (a sub-lattice scores as high, with a larger cell); the basis is refined
-  to sub-pixel accuracy by least squares over the sub-pixel peaks of all lattice points within half the image.
-  ``regularity`` is the mean height of the autocorrelation at the lattice points above its mean over the ring
-  of the same radius (its isotropic decay), 0..1; ``significance`` is that height in units of the ring's
-  standard deviation and decides whether there is a lattice at all (a blob field's best peaks reach ~2.3,
-  real brick walls ~3.3, synthetic layouts 3-6); a one-directional repeat (rows of random-length bricks, stripes) gives a single vector (``kind`` "rows").
-  Also reported: the row offset of the lattice in its most row-like basis (0 stacked, 1/2 running bond,
-  1/3 thirds), the orientation of the rows and the width of the thin network phase (mortar, grout, seams).
+  vectors; the basis is the pair (cells of at most a tenth of the mask) whose lattice points stand highest above
+  the autocorrelation's ring mean at their radius (its isotropic decay), the smallest cell among those within
+  10 % of the best (a sub-lattice scores as high, with a larger cell); the basis is refined to sub-pixel
+  accuracy by least squares over the sub-pixel peaks of all lattice points within half the image.
+  ``regularity`` is that height (0..1); ``significance`` is the same in units of the ring's standard deviation
+  and decides whether there is a repeat at all (rust and blob fields reach ~2, real slate rows 2.6, brick walls
+  3.4, synthetic layouts 3-6; a repeat needs 2.5). Rows run along the short lattice vector along which the
+  autocorrelation stays high between lattice points (a course's mortar lines keep matching along the course);
+  when the lattice points barely rise above that ridge, the cuts along the rows are random and the mask is
+  ``kind`` "rows" (one vector: the row spacing across the rows). Also reported: the row offset (0 stacked, 1/2
+  running bond, 1/3 thirds), the rows' orientation and the width of the thin network phase (mortar, seams).
 * ``pptbf_starts``: each PPTBF tiling family has a known lattice of cell centres in domain units
   (``DOMAIN_LATTICE``, checked against renders in tests); the pixel lattice of parameters (resolution r,
   aspect a, rotation alpha) is ``M D`` with ``M = r R(-alpha) diag(a, 1)``. For every family and every small
-  change of basis of the target lattice, M is solved for and projected onto that form; families that match
-  within a tolerance give starting vectors (with a crisp cellular window: the layout's cells, thresholded at
-  the target's white fraction) in both polarities.
+  change of basis of the target lattice (and its index-2 super-lattices: offsets that alternate row to row),
+  M is solved for and projected onto that form; families that match within a tolerance give starting vectors
+  with a crisp cellular window (the layout's cells, thresholded at the target's white fraction), ordered so
+  that the first cover every kind of layout (square, half and third bonds, herringbone, pavement, Pythagorean,
+  random-cut rows along the courses), bricks along the courses first.
+* ``compare_lattices``: period and angle errors of one lattice against another (the acceptance yardstick).
 """
 from __future__ import annotations
 
@@ -49,7 +54,7 @@ class LatticeConfig:
     max_peaks: int = 16            # candidate vectors (strongest local maxima)
     min_peak: float = 0.05         # autocorrelation a candidate needs
     max_cell_share: float = 1.0 / 10.0   # a layout shows at least 10 cells in the mask
-    min_significance: float = 2.8  # lattice points' height above the ring mean, in ring standard deviations
+    min_significance: float = 2.5  # lattice points' height above the ring mean, in ring standard deviations
     rows_ratio: float = 0.5        # a 2-D lattice wins over a one-directional repeat at this share of its contrast
 
 
@@ -60,7 +65,7 @@ class Lattice:
     kind: str                                  # "2d", "rows" or "none"
     vectors: list[tuple[float, float]]          # reduced basis: 2 vectors ("2d"), 1 ("rows"), none
     regularity: float                           # autocorrelation at lattice points above its ring mean (0..1)
-    significance: float = 0.0                   # the same in ring standard deviations (>= 2.8: a repeat)
+    significance: float = 0.0                   # the same in ring standard deviations (>= 2.5: a repeat)
     row_vector: tuple[float, float] | None = None   # the lattice's row direction (the basis vector along rows)
     row_spacing: float | None = None            # distance between rows (px)
     row_offset: float | None = None             # shift of the next row along the row, in row periods (0..0.5)

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from pptbf_db import pptbf as pp
 
 from .features import GramExtractor, gram_distance
+from .errors import InputError
 from .inpaint import masked_autocorrelation
 from .lattice import Lattice, pptbf_starts
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
@@ -160,6 +161,32 @@ def _window_grid(budget: Budget, x0: np.ndarray) -> np.ndarray:
     return best
 
 
+#: a candidate keeps the target's layout when a fresh realisation's lattice is within these of the target's
+GATE_PERIOD, GATE_ANGLE = 0.10, 5.0
+#: starts checked (best first) for one that keeps the lattice before the window stage
+GATE_CHECKS = 8
+
+
+def _keeps_lattice(loss: GramMaskLoss, lat: Lattice, cand: tuple) -> bool:
+    """Whether a fresh realisation of candidate (loss, complement, params, ...) has the target's lattice
+    (period within 10 %, angle within 5 degrees)."""
+    from .lattice import analyse_lattice, compare_lattices
+
+    m = loss.render(cand[2], cand[1], True, shift=(loss.shift[0] + 53.3, loss.shift[1] + 29.9))
+    try:
+        per, ang = compare_lattices(lat, analyse_lattice(m))
+    except InputError:          # a uniform render
+        return False
+    return per <= GATE_PERIOD and ang <= GATE_ANGLE
+
+
+def _lattice_gate(loss: GramMaskLoss, lat: Lattice, cands: list, at_most: int | None = None) -> list:
+    """The candidates (in order) that keep the target's lattice, checking at most `at_most` of them. The loss is
+    a texture statistic: on a noisy real wall it can prefer a finer grid or loose rows to the wall's own
+    courses (castle_brick_broken_06: the picture says otherwise), so the layout is checked on its own."""
+    return [c for c in cands[:at_most] if _keeps_lattice(loss, lat, c)]
+
+
 @dataclass
 class _Starts:
     """Scored starting vectors (loss, complement, params, kind) best first, and the verbatim query result."""
@@ -238,8 +265,11 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     per_eval = (time.perf_counter() - t0) / max(1, n0)
     stage_deadline = deadline - reserve * per_eval * 2
     cands = [(s[0], s[1], s[2], None, True) for s in scored[:2]]
-    # window stage from the best lattice start (the best start when no lattice one was scored)
-    lat_best = next((s for s in scored if s[3] == "lattice"), scored[0])
+    # window stage from the best start that keeps the lattice (else the best lattice start, else the best)
+    kept = _lattice_gate(loss, lat, scored, at_most=GATE_CHECKS)
+    lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
+    if kept:
+        cands.append((kept[0][0], kept[0][1], kept[0][2], None, True))
     b1 = _window_stage(loss, lat_best, w, int(0.6 * left),
                        t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0), cfg, seed)
     history += b1.history
@@ -249,9 +279,11 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, None, True))
     cands.sort(key=lambda c: c[0])
+    gated = _lattice_gate(loss, lat, cands)
     n_val, val = 0, None
+    cands = gated[:4] if gated else cands[:4]
     if cfg.validate > 0:      # the candidate best on fresh realisations
-        params, own, complement, _, val, n_val = _validate(loss, cands[:4], cfg.validate)
+        params, own, complement, _, val, n_val = _validate(loss, cands, cfg.validate)
     else:
         own, complement, params = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64)
     secs = time.perf_counter() - t0
@@ -267,4 +299,5 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                    shift=tuple(cfg.shift), entry_id=getattr(q[0], "entry_id", None) if q else None,
                    meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
-                         "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss)})
+                         "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
+                         "lattice_kept": len(gated) > 0})
