@@ -287,7 +287,8 @@ def test_refit_random_parameters_reaches_truth_floor(tiny_index):
     for p, o, _, target in _random_targets(np.random.default_rng(5), 5):
         loss = MaskLoss(target, tiny_index)
         floor = realisation_distance(loss, p)
-        fit = fit_pptbf_mask(target, tiny_index, config=MaskFitConfig(max_evals=80, time_budget_s=120))
+        fit = fit_pptbf_mask(target, tiny_index, config=MaskFitConfig(max_evals=80, time_budget_s=120,
+                                                                       lattice=False))   # the query path
         assert fit.evaluations <= 80 and fit.loss_final <= fit.loss_query
         assert np.isfinite(fit.meta["validation_loss"]) and len(fit.history) == fit.evaluations
         ratios.append(realisation_distance(loss, fit.params, fit.complement) / floor)
@@ -302,12 +303,12 @@ def test_multi_start_fit_respects_budget(tiny_index):
     """starts=3 with structure moves: the explored starts and the validation count against max_evals, the
     history has one (monotone) entry per evaluation, and the result is never worse than the query."""
     p, _, _, target = _random_targets(np.random.default_rng(8), 1)[0]
-    cfg = MaskFitConfig(max_evals=120, time_budget_s=120, starts=3, structure_moves=True)
+    cfg = MaskFitConfig(max_evals=120, time_budget_s=120, starts=3, structure_moves=True, lattice=False)
     fit = fit_pptbf_mask(target, tiny_index, config=cfg)
     assert fit.evaluations <= 120 and len(fit.history) == fit.evaluations
     assert fit.history == sorted(fit.history, reverse=True)
     assert fit.loss_final <= fit.loss_query and np.isfinite(fit.meta["validation_loss"])
-    plain = fit_pptbf_mask(target, tiny_index, config=MaskFitConfig(max_evals=120, time_budget_s=120))
+    plain = fit_pptbf_mask(target, tiny_index, config=MaskFitConfig(max_evals=120, time_budget_s=120, lattice=False))
     assert not np.array_equal(plain.params, fit.params) or plain.evaluations != fit.evaluations
 
 
@@ -378,7 +379,9 @@ def _brick_mask(materials_dir) -> np.ndarray:
 def test_real_brick_mask_fit_improves_on_query(materials_dir, tiny_index):
     mask = _brick_mask(materials_dir)
     assert 0.6 < mask.mean() < 0.8
-    fit = fit_pptbf_mask(mask, tiny_index, config=MaskFitConfig(max_evals=50, time_budget_s=120, seed=1))
+    # the query-and-optimise path (the lattice-first path has its own tests in test_layout_fit.py)
+    fit = fit_pptbf_mask(mask, tiny_index, config=MaskFitConfig(max_evals=50, time_budget_s=120, seed=1,
+                                                                lattice=False))
     assert fit.fit_size == (RES, RES)
     assert fit.loss_final < fit.loss_query
     # the reported loss is the descriptor distance of the rendered fit to the downsampled target

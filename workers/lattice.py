@@ -274,7 +274,7 @@ def analyse_lattice(mask, config: LatticeConfig | None = None) -> Lattice:
     best2 = None
     if pairs:
         s_max = max(p[0] for p in pairs)
-        near = [p for p in pairs if p[0] >= 0.9 * s_max]
+        near = [p for p in pairs if p[0] >= s_max - 0.1 * abs(s_max)]
         s, _, b = min(near, key=lambda p: p[1])
         b = _reduce(_refine(ac, b, radius))
         best2 = (_score(ac, prof, b, radius), b)

@@ -198,7 +198,7 @@ class _Starts:
 
 
 def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: MaskFitConfig,
-                  deadline: float) -> _Starts:
+                  deadline: float, max_evals: int) -> _Starts:
     """Score the lattice starts (both polarities: a cellular window is high inside cells, so a white network
     needs the complement, but real masks are often broken networks on both sides) and the database's nearest
     entries (both polarities, threshold from the target)."""
@@ -211,13 +211,14 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
                 out.query = out.query or (mt, compl)
                 starts.append((np.asarray(mt.params, np.float64), compl, "database"))
     for p, compl, kind in starts:
-        if len(out.scored) >= cfg.max_evals or time.perf_counter() > deadline:
+        if len(out.scored) >= max(1, max_evals - 1) or (out.scored and time.perf_counter() > deadline):
             break
         p = loss.with_threshold(p, compl)
         out.scored.append((loss(p, compl), compl, p, kind))
         out.history.append(min(s[0] for s in out.scored))
     if out.query is not None:
         out.loss_query = loss(out.query[0].params, out.query[1], threshold_from_target=False)
+        out.history.append(min(out.history[-1], out.loss_query))
     out.scored.sort(key=lambda s: s[0])
     return out
 
@@ -226,7 +227,7 @@ def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, 
                   cfg: MaskFitConfig, seed: int) -> Budget:
     """Layout frozen: the cell-shape grid, then the window entries by local search and sweeps."""
     own, compl, x0, _ = start
-    b = Budget(lambda q, c=compl: loss(q, c), max(10, max_evals), deadline)
+    b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
     b.seed(x0, own)
     try:
         x0 = _window_grid(b, x0)
@@ -241,7 +242,7 @@ def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadlin
             seed: int) -> Budget:
     """Everything free, small steps, from the best candidate so far."""
     own, compl, x0 = best[0], best[1], best[2]
-    b = Budget(lambda q, c=compl: loss(q, c), max(5, max_evals), deadline)
+    b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
     b.seed(x0, own)
     optimise(b.loss, x0, width, OptSettings(rounds=2, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.03,
                                             seed=seed + 1), budget=b)
@@ -255,13 +256,14 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     h, w = target.shape
     loss = GramMaskLoss(target, valid, shift=cfg.shift, factor=loss_factor(w), realisations=cfg.realisations)
     deadline = t0 + cfg.time_budget_s
-    st = _score_starts(target, valid, index, lat, loss, cfg, deadline)
+    reserve = max(0, int(cfg.validate)) * 4            # validation: up to 4 candidates on fresh realisations
+    reserve = reserve if cfg.max_evals - reserve >= 20 else 0
+    st = _score_starts(target, valid, index, lat, loss, cfg, deadline, cfg.max_evals - reserve)
     scored, history = st.scored, list(st.history)
-    n0 = len(scored) + (1 if st.query is not None else 0)
+    n0 = len(history)
     logger.info("layout fit: %d starts, best lattice start %.4f, best overall %.4f (%s)", len(scored),
                 min((s[0] for s in scored if s[3] == "lattice"), default=float("nan")), scored[0][0], scored[0][3])
-    reserve = max(0, int(cfg.validate)) * 4
-    left = cfg.max_evals - n0 - reserve
+    left = max(0, cfg.max_evals - n0 - reserve)
     per_eval = (time.perf_counter() - t0) / max(1, n0)
     stage_deadline = deadline - reserve * per_eval * 2
     cands = [(s[0], s[1], s[2], None, True) for s in scored[:2]]
@@ -282,8 +284,9 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     gated = _lattice_gate(loss, lat, cands)
     n_val, val = 0, None
     cands = gated[:4] if gated else cands[:4]
-    if cfg.validate > 0:      # the candidate best on fresh realisations
+    if reserve:               # the candidate best on fresh realisations
         params, own, complement, _, val, n_val = _validate(loss, cands, cfg.validate)
+        history += [history[-1]] * n_val
     else:
         own, complement, params = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64)
     secs = time.perf_counter() - t0
