@@ -266,29 +266,32 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     left = max(0, cfg.max_evals - n0 - reserve)
     per_eval = (time.perf_counter() - t0) / max(1, n0)
     stage_deadline = deadline - reserve * per_eval * 2
-    cands = [(s[0], s[1], s[2], None, True) for s in scored[:2]]
+    cands = [(s[0], s[1], s[2], s[3], True) for s in scored[:2]]
     # window stage from the best start that keeps the lattice (else the best lattice start, else the best)
     kept = _lattice_gate(loss, lat, scored, at_most=GATE_CHECKS)
     lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
     if kept:
-        cands.append((kept[0][0], kept[0][1], kept[0][2], None, True))
+        cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
     b1 = _window_stage(loss, lat_best, w, int(0.6 * left),
                        t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0), cfg, seed)
     history += b1.history
-    cands.append((b1.best_loss, lat_best[1], b1.best_params, None, True))
+    cands.append((b1.best_loss, lat_best[1], b1.best_params, "window", True))
     best = min(cands, key=lambda c: c[0])
     b2 = _polish(loss, best, w, left - b1.evaluations, stage_deadline, cfg, seed)
     history += b2.history
-    cands.append((b2.best_loss, best[1], b2.best_params, None, True))
+    cands.append((b2.best_loss, best[1], b2.best_params, "polish", True))
     cands.sort(key=lambda c: c[0])
     gated = _lattice_gate(loss, lat, cands)
+    # none keeps the lattice on a fresh realisation (a noisy target's own analysis is noisy too): the layouts
+    # built on the lattice (window stage, lattice starts) rather than a database entry or a drifted polish
+    on_lattice = [c for c in cands if c[3] in ("window", "lattice")]
+    cands = (gated or on_lattice or cands)[:4]
     n_val, val = 0, None
-    cands = gated[:4] if gated else cands[:4]
     if reserve:               # the candidate best on fresh realisations
-        params, own, complement, _, val, n_val = _validate(loss, cands, cfg.validate)
+        params, own, complement, chosen, val, n_val = _validate(loss, cands, cfg.validate)
         history += [history[-1]] * n_val
     else:
-        own, complement, params = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64)
+        own, complement, params, chosen = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64), cands[0][3]
     secs = time.perf_counter() - t0
     evals = n0 + b1.evaluations + b2.evaluations + n_val
     logger.info("PPTBF layout fit %dx%d (%s lattice, period %.1f px): loss %.4f (best start) -> %.4f, "
@@ -303,4 +306,4 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                    meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
                          "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
-                         "lattice_kept": len(gated) > 0})
+                         "lattice_kept": len(gated) > 0, "chosen": chosen})
