@@ -217,7 +217,7 @@ def _rows_vector(ac: np.ndarray, prof: np.ndarray, cand: np.ndarray, cfg: Lattic
     best, score = None, -1.0
     for v in cand[: cfg.max_peaks]:
         n = min(2, int(radius // max(np.linalg.norm(v), 1e-9)))
-        if n < 1:
+        if n < 2:           # a repeat shows at least twice within half the mask (4 times across it)
             continue
         s = _contrast(ac, prof, v[None] * np.arange(1, n + 1)[:, None])
         if s > score * 1.1 or (s > 0.9 * score and np.linalg.norm(v) < np.linalg.norm(best)):
