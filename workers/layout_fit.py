@@ -34,7 +34,7 @@ from pptbf_db import pptbf as pp
 from .features import GramExtractor, gram_distance
 from .errors import InputError
 from .inpaint import masked_autocorrelation
-from .lattice import Lattice, pptbf_starts
+from .lattice import Lattice, pptbf_starts, radial_profile
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
 from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate
 
@@ -59,15 +59,20 @@ STRUCTURE_WEIGHT = 1.0
 
 
 def layout_part(ac: np.ndarray) -> np.ndarray:
-    """The (shifted) autocorrelation less its ring means, inside the largest centred disc: what a layout adds to
-    the isotropic decay (lattice peaks, row ridges), zero elsewhere."""
+    """The (shifted) autocorrelation less its ring means (``lattice.radial_profile``), inside the largest centred
+    disc: what a layout adds to the isotropic decay (lattice peaks, row ridges), zero elsewhere."""
     h, w = ac.shape
     yy, xx = np.mgrid[:h, :w]
     r = np.rint(np.hypot(yy - h // 2, xx - w // 2)).astype(np.int64)
-    ring = np.bincount(r.ravel(), ac.ravel()) / np.maximum(np.bincount(r.ravel()), 1)
-    out = ac - ring[r]
+    out = ac - radial_profile(ac)[0][r]
     out[r > min(h, w) // 2 - 1] = 0.0
     return out
+
+
+def _layout_distance(la: np.ndarray, lb: np.ndarray) -> float:
+    """1 - correlation of two layout parts."""
+    den = float(np.sqrt((la * la).sum() * (lb * lb).sum()))
+    return 1.0 - float((la * lb).sum()) / den if den > 1e-12 else 1.0
 
 
 def autocorrelation_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -75,9 +80,7 @@ def autocorrelation_distance(a: np.ndarray, b: np.ndarray) -> float:
     whatever the realisation, 1 for no shared structure (a scatter, or a flat render), up to 2 for opposite.
     A correlation, not a difference: a grid with the right periods but a wrong row offset shares half its
     peaks with the target and must score better than no layout at all."""
-    la, lb = layout_part(a), layout_part(b)
-    den = float(np.sqrt((la * la).sum() * (lb * lb).sum()))
-    return 1.0 - float((la * lb).sum()) / den if den > 1e-12 else 1.0
+    return _layout_distance(layout_part(a), layout_part(b))
 
 
 class GramMaskLoss(MaskLoss):
@@ -107,6 +110,7 @@ class GramMaskLoss(MaskLoss):
         self._known = np.ones(self._image(target).shape[-2:], bool) if valid is None else \
             self._valid_t.numpy() > 0.5
         self._target_desc = self.describe(target)
+        self._target_layout = None if self._target_desc[1] is None else layout_part(self._target_desc[1])
 
     def _image(self, mask: np.ndarray) -> torch.Tensor:
         """1x1xhxw float tensor of a bool mask, area-averaged by the factor."""
@@ -138,7 +142,7 @@ class GramMaskLoss(MaskLoss):
         grams, ac = self.describe(mask)
         d = float(gram_distance(grams, self._target_desc[0])[0])
         if ac is not None:
-            d += self.structure_weight * autocorrelation_distance(ac, self._target_desc[1])
+            d += self.structure_weight * _layout_distance(layout_part(ac), self._target_layout)
         return d
 
 
