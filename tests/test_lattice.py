@@ -112,3 +112,14 @@ def test_bad_input():
         L.analyse_lattice(np.zeros((64, 64), bool))
     with pytest.raises(InputError, match="16x16"):
         L.analyse_lattice(np.zeros((8, 64), bool))
+
+
+def test_degenerate_basis_has_no_points():
+    """A refinement can collapse a basis vector; enumerating its lattice must stay bounded (it once took GBs)."""
+    from workers.lattice import _lattice_points
+
+    for basis in ([[12.0, 0.0], [1e-12, 0.0]], [[12.0, 0.0], [12.0, 1e-6]], [[0.0, 0.0], [0.0, 9.0]]):
+        c, p = _lattice_points(np.array(basis), 60.0)
+        assert c.shape == (0, 2) and p.shape == (0, 2)
+    c, p = _lattice_points(np.array([[10.0, 0.0], [0.0, 10.0]]), 25.0)
+    assert len(p) == 20 and np.linalg.norm(p, axis=1).max() <= 25.0   # (+-1|+-2, 0|..) within radius 25

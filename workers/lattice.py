@@ -98,6 +98,10 @@ def autocorrelation(mask: np.ndarray) -> np.ndarray:
     return np.fft.fftshift(ac)
 
 
+#: bound on the integer lattice coefficients enumerated (radius / shortest vector for any usable basis)
+MAX_COEFF = 512
+
+
 def _sample(ac: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Bilinear samples of the shifted autocorrelation at lags pts (n, 2) as (dx, dy), wrapping."""
     h, w = ac.shape
@@ -105,13 +109,19 @@ def _sample(ac: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def _lattice_points(basis: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """Integer coefficients (n, 2) and lags (n, 2) of the lattice points 0 < |p| <= radius of a 2x2 basis (rows)."""
+    """Integer coefficients (n, 2) and lags (n, 2) of the lattice points 0 < |p| <= radius of a 2x2 basis (rows).
+
+    A degenerate basis (a vector under half a pixel, or a cell under one pixel: a refinement can collapse one)
+    has no usable points; coefficients are bounded (|a|, |b| <= MAX_COEFF) so memory stays small."""
     short = min(np.linalg.norm(basis[0]), np.linalg.norm(basis[1]))
     area = abs(np.linalg.det(basis))
-    k = int(min(40, math.ceil(radius * max(np.linalg.norm(basis[0]), np.linalg.norm(basis[1])) / max(area, 1e-9))
-                + 1))
-    k = max(k, int(math.ceil(radius / max(short, 1e-9))) + 1)
-    c = np.array([(a, b) for a in range(-k, k + 1) for b in range(-k, k + 1) if (a, b) != (0, 0)], dtype=np.float64)
+    if short < 0.5 or area < 1.0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    k = int(min(40, math.ceil(radius * max(np.linalg.norm(basis[0]), np.linalg.norm(basis[1])) / area) + 1))
+    k = min(MAX_COEFF, max(k, int(math.ceil(radius / short)) + 1))
+    a, b = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1), indexing="ij")
+    c = np.stack([a.ravel(), b.ravel()], axis=1).astype(np.float64)
+    c = c[(c != 0).any(axis=1)]
     p = c @ basis
     keep = np.linalg.norm(p, axis=1) <= radius
     return c[keep], p[keep]
