@@ -27,12 +27,15 @@ from workers.errors import DatabaseError
 
 logger = logging.getLogger(__name__)
 
-#: measured (generator pptbf/2): 5000 entries at 128 px in 149 s with 2 Ray workers on the idle 2-core dev
-#: machine, ~1050 entries per core-minute; 20000 fit well within 15 min (see the issue notes for the figure)
 DEFAULT_SIZE = 5000
 DEFAULT_RESOLUTION = 128
-DEFAULT_REGULAR_SHARE = 0.0   # 0.25 measured no better on regular targets (10/12 vs 9/12 within 1.5x)
+#: strata of the sampled vectors: nearly regular layouts, crisp cells (bricks, tiles, plates), the rest uniform;
+#: every tiling family gets the same number of vectors
+DEFAULT_REGULAR_SHARE = 0.15
+DEFAULT_CRISP_SHARE = 0.35
 DEFAULT_CHUNK = 100
+#: lattice kinds stored per entry (workers.lattice.Lattice.kind)
+LATTICE_KINDS = ("none", "rows", "2d")
 
 
 @dataclass
@@ -46,6 +49,8 @@ class BuildConfig:
     descriptor: DescriptorConfig = field(default_factory=DescriptorConfig)
     reduced_dtype: str = "float32"          # "float16" halves the bundled database
     regular_share: float = DEFAULT_REGULAR_SHARE  # share of nearly regular layouts (see pptbf.sample_params)
+    crisp_share: float = DEFAULT_CRISP_SHARE      # share of crisp-cell layouts (see pptbf.sample_params)
+    balanced_tiling: bool = True                  # the same number of vectors per tiling family
 
     def settings(self) -> dict:
         """The settings a resumed build must match (the PCA dimension may change: it is refitted)."""
@@ -55,6 +60,23 @@ class BuildConfig:
                "chunk": self.chunk, "descriptor": desc, "generator": GENERATOR}
         if self.regular_share:  # absent = 0: builds started before the option resume as they were
             out["regular_share"] = self.regular_share
+        if self.crisp_share:
+            out["crisp_share"] = self.crisp_share
+        if self.balanced_tiling:
+            out["balanced_tiling"] = True
+        return out
+
+    def sample(self) -> np.ndarray:
+        """The (size, 29) parameter vectors of this build (seeded)."""
+        return np.asarray(pptbf.sample_params(np.random.default_rng(self.seed), self.size, ref_width=self.resolution,
+                                              regular_share=self.regular_share, crisp_share=self.crisp_share,
+                                              balanced_tiling=self.balanced_tiling), dtype=np.float64)
+
+    def strata(self) -> np.ndarray:
+        """Per vector, its stratum: "uniform", "regular" or "crisp"."""
+        out = np.full(self.size, "uniform", dtype=object)
+        reg, crisp = pptbf.stratum_indices(self.size, self.regular_share, self.crisp_share)
+        out[reg], out[crisp] = "regular", "crisp"
         return out
 
     def validate(self) -> None:
@@ -69,6 +91,8 @@ class BuildConfig:
             raise ValueError(f"reduced_dtype must be float16 or float32, got {self.reduced_dtype!r}")
         if not 0.0 <= self.regular_share <= 1.0:
             raise ValueError(f"regular_share must be in [0, 1], got {self.regular_share}")
+        if not 0.0 <= self.crisp_share <= 1.0 - self.regular_share:
+            raise ValueError(f"crisp_share must be in [0, 1 - regular_share], got {self.crisp_share}")
 
 
 @dataclass
@@ -95,11 +119,14 @@ class BuildReport:
 # ------------------------------------------------------------------------------------------------ pure work
 
 def render_and_describe(params: np.ndarray, resolution: int,
-                        config: DescriptorConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Render each parameter vector as a `resolution` px mask and describe it: (raw (n, D) float32, white (n,)).
+                        config: DescriptorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render each parameter vector as a `resolution` px mask and describe it: raw (n, D) float32, white (n,) and
+    lattice (n, 2) float32 = (index of the lattice kind in LATTICE_KINDS, significance) of each mask.
 
     A vector whose render fails gives an empty mask (white 0, so the index never returns it).
     """
+    from workers.lattice import analyse_lattice
+
     masks = np.zeros((len(params), resolution, resolution), dtype=np.float32)
     for i, p in enumerate(params):              # one render per vector (each is vectorised over pixels)
         try:
@@ -107,17 +134,23 @@ def render_and_describe(params: np.ndarray, resolution: int,
         except (ValueError, FloatingPointError) as exc:
             logger.warning("PPTBF render failed for a database entry (%s); stored as an empty mask", exc)
     white = masks.mean(axis=(1, 2)).astype(np.float32)
-    return describe_masks(masks, None, config), white
+    lattice = np.zeros((len(params), 2), dtype=np.float32)
+    for i, m in enumerate(masks):
+        if DEGENERATE_WHITE < white[i] < 1.0 - DEGENERATE_WHITE:
+            lat = analyse_lattice(m > 0.5)
+            lattice[i] = (LATTICE_KINDS.index(lat.kind), lat.significance)
+    return describe_masks(masks, None, config), white, lattice
 
 
-def _chunk_task_body(params: np.ndarray, resolution: int, config_dict: dict) -> tuple[np.ndarray, np.ndarray, float]:
+def _chunk_task_body(params: np.ndarray, resolution: int,
+                     config_dict: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Ray task body: single-threaded render + describe of one chunk, with its duration."""
     import torch
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    raw, white = render_and_describe(params, resolution, DescriptorConfig.from_dict(config_dict))
-    return raw, white, time.perf_counter() - t0
+    raw, white, lattice = render_and_describe(params, resolution, DescriptorConfig.from_dict(config_dict))
+    return raw, white, lattice, time.perf_counter() - t0
 
 
 # ------------------------------------------------------------------------------------------------ storage
@@ -226,8 +259,9 @@ def _run_chunks(ray, pending: list[int], params: np.ndarray, db, folder: Path, c
                 submit(todo.pop(0))
             ready, _ = ray.wait(list(in_flight), num_returns=1)
             cid = in_flight.pop(ready[0])
-            raw, white, secs = ray.get(ready[0])
+            raw, white, lattice, secs = ray.get(ready[0])
             _save_npy(_raw_path(folder, cid), raw)
+            _save_npy(folder / f"lattice_{cid:04d}.npy", lattice)
             _save_npy(folder / f"white_{cid:04d}.npy", white)
             db["chunks"].update(cid, {"status": "done", "seconds": secs, "white_mean": float(white.mean()),
                                       "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")})
@@ -251,6 +285,7 @@ def _finish(folder: Path, db, cfg: BuildConfig, params: np.ndarray, n_chunks: in
     raws = [np.load(_raw_path(folder, c), allow_pickle=False) for c in range(n_chunks)]
     white = np.concatenate([np.load(folder / f"white_{c:04d}.npy", allow_pickle=False) for c in range(n_chunks)])
     raw = np.concatenate(raws, axis=0)
+    lattice = np.concatenate([_load_lattice(folder, c, len(r)) for c, r in enumerate(raws)])
     usable = (white > DEGENERATE_WHITE) & (white < 1.0 - DEGENERATE_WHITE)
     t0 = time.perf_counter()
     pca = fit_pca(raw[usable] if usable.sum() > 2 else raw, cfg.descriptor)
@@ -261,12 +296,16 @@ def _finish(folder: Path, db, cfg: BuildConfig, params: np.ndarray, n_chunks: in
     os.replace(folder / "pca.npz.tmp", folder / "pca.npz")
     _save_npy(folder / "reduced.npy", reduced)
     _save_npy(folder / "white.npy", white)
+    _save_npy(folder / "lattice.npy", lattice)
     _save_npy(folder / "params.npy", params)
+    strata = cfg.strata()
     chunk_of = np.repeat(np.arange(n_chunks), [len(r) for r in raws])
     db["entries"].drop(ignore=True)
     db["entries"].insert_all(({"id": i, "chunk": int(chunk_of[i]), "white": float(white[i]),
                                "tiling": int(params[i, 1]), "window_shape": int(params[i, 9]),
-                               "mixture": int(params[i, 16]), "degenerate": int(not usable[i])}
+                               "mixture": int(params[i, 16]), "degenerate": int(not usable[i]),
+                               "stratum": str(strata[i]), "lattice": _lattice_kind(lattice[i, 0]),
+                               "significance": float(lattice[i, 1])}
                               for i in range(len(params))), pk="id", batch_size=2000)
     secs = [r["seconds"] or 0.0 for r in db["chunks"].rows]
     meta = {"format": FORMAT, "size": int(len(params)), "resolution": cfg.resolution, "seed": cfg.seed,
@@ -275,8 +314,11 @@ def _finish(folder: Path, db, cfg: BuildConfig, params: np.ndarray, n_chunks: in
             "blocks": {k: [v.start, v.stop] for k, v in block_slices(cfg.descriptor, raw.shape[1]).items()},
             "explained_variance": float(pca.explained.sum()), "reduced_dtype": cfg.reduced_dtype,
             "degenerate": int((~usable).sum()),
-            "sampler": "pptbf_db.pptbf.sample_params(ref_width=resolution, regular_share=regular_share)",
-            "regular_share": cfg.regular_share, "generator": GENERATOR,
+            "sampler": "pptbf_db.pptbf.sample_params(ref_width=resolution, regular_share=regular_share, "
+                       "crisp_share=crisp_share, balanced_tiling=balanced_tiling)",
+            "regular_share": cfg.regular_share, "crisp_share": cfg.crisp_share,
+            "balanced_tiling": cfg.balanced_tiling, "generator": GENERATOR,
+            "lattice_share": lattice_shares(lattice, strata, usable),
             "task_core_seconds": round(float(sum(secs)), 2), "pca_seconds": round(pca_seconds, 2),
             "raw_kept": bool(keep_raw),
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
@@ -287,6 +329,26 @@ def _finish(folder: Path, db, cfg: BuildConfig, params: np.ndarray, n_chunks: in
     logger.info("PPTBF database %s: %d entries, dim %d (%.1f%% variance), %d degenerate",
                 folder, len(params), pca.dim, 100 * meta["explained_variance"], meta["degenerate"])
     return meta
+
+
+def _load_lattice(folder: Path, cid: int, n: int) -> np.ndarray:
+    """A chunk's per-entry lattice (kind index, significance); NaN for chunks computed before it was stored."""
+    path = folder / f"lattice_{cid:04d}.npy"
+    return np.load(path, allow_pickle=False) if path.is_file() else np.full((n, 2), np.nan, np.float32)
+
+
+def _lattice_kind(code: float) -> str | None:
+    return None if not np.isfinite(code) else LATTICE_KINDS[int(code)]
+
+
+def lattice_shares(lattice: np.ndarray, strata: np.ndarray, usable: np.ndarray) -> dict[str, float | None]:
+    """Share of usable entries whose mask has a lattice (workers.lattice: a 2-D lattice or rows, by the
+    significance of its repeat), over all and per stratum; None where unknown."""
+    known = usable & np.isfinite(lattice[:, 0])
+    out: dict[str, float | None] = {}
+    for name, sel in [("all", known)] + [(s, known & (strata == s)) for s in ("uniform", "regular", "crisp")]:
+        out[name] = round(float((lattice[sel, 0] > 0).mean()), 4) if sel.any() else None
+    return out
 
 
 def _refit_needed(folder: Path, cfg: BuildConfig) -> bool:
@@ -314,6 +376,7 @@ def _drop_raw(folder: Path, n_chunks: int) -> None:
     for c in range(n_chunks):
         _raw_path(folder, c).unlink(missing_ok=True)
         (folder / f"white_{c:04d}.npy").unlink(missing_ok=True)
+        (folder / f"lattice_{c:04d}.npy").unlink(missing_ok=True)
     meta_path = folder / "meta.json"
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
@@ -321,14 +384,14 @@ def _drop_raw(folder: Path, n_chunks: int) -> None:
         meta_path.write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
 
-BUILD_FILES = ("meta.json", "params.npy", "reduced.npy", "pca.npz", "white.npy", "db.sqlite")
+BUILD_FILES = ("meta.json", "params.npy", "reduced.npy", "pca.npz", "white.npy", "lattice.npy", "db.sqlite")
 
 
 def clear_database(folder: str | Path) -> int:
     """Delete a database folder's build files (only names a build writes), so the next build starts afresh."""
     folder = Path(folder)
     n = 0
-    chunk_files = sorted(folder.glob("raw_*.npy*")) + sorted(folder.glob("white_*.npy*"))
+    chunk_files = [f for pat in ("raw_*.npy*", "white_*.npy*", "lattice_*.npy*") for f in sorted(folder.glob(pat))]
     for f in [folder / b for b in BUILD_FILES] + chunk_files:
         if f.is_file():
             f.unlink()
@@ -356,8 +419,7 @@ def build_database(out: str | Path, config: BuildConfig | None = None, *, worker
     db = _open_db(folder)
     _check_settings(db, folder, cfg.settings())
     n_chunks = (cfg.size + cfg.chunk - 1) // cfg.chunk
-    params = np.asarray(pptbf.sample_params(np.random.default_rng(cfg.seed), cfg.size, ref_width=cfg.resolution,
-                                            regular_share=cfg.regular_share), dtype=np.float64)
+    params = cfg.sample()
     done, pending = _sync_chunks(db, folder, cfg.size, cfg.chunk)
     report = BuildReport(folder, False, cfg.size, n_chunks, [], list(done), 0.0, 0.0)
     if (folder / "meta.json").is_file() and not pending:

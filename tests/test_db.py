@@ -66,8 +66,18 @@ def test_uninterrupted_build(builds):
     # the parameters are the seeded sample, in order
     np.testing.assert_array_equal(np.load(folder / "params.npy"),
                                   pptbf.sample_params(np.random.default_rng(11), TINY.size, ref_width=64,
-                                                      regular_share=TINY.regular_share))
-    assert TINY.regular_share == 0.25 and meta["regular_share"] == 0.25
+                                                      regular_share=TINY.regular_share, crisp_share=TINY.crisp_share,
+                                                      balanced_tiling=True))
+    assert TINY.regular_share == 0.25 and meta["regular_share"] == 0.25 and meta["crisp_share"] == TINY.crisp_share
+    # every tiling family gets the same number of entries; the descriptor is the pretrained VGG-19 one
+    counts = np.bincount(np.load(folder / "params.npy")[:, 1].astype(int), minlength=18)
+    assert counts.max() - counts.min() <= 1, counts
+    assert meta["descriptor"]["extractor"] == "vgg19" and meta["blocks"]["gram"][1] - meta["blocks"]["gram"][0] == 544
+    # the lattice of every entry is recorded; crisp cells and regular layouts repeat far more often than the rest
+    lat = np.load(folder / "lattice.npy")
+    assert lat.shape == (TINY.size, 2) and np.isfinite(lat).all()
+    shares = meta["lattice_share"]
+    assert shares["crisp"] > shares["uniform"] + 0.2, shares
     assert set(_chunk_runs(folder).values()) == {1}
 
 
@@ -100,6 +110,21 @@ def test_other_settings_are_refused(builds, tmp_path):
     assert PPTBFIndex.load(folder).reduced.shape == (TINY.size, 16)
 
 
+def test_database_of_another_extractor_is_refused(builds, tmp_path):
+    """A database records the Gram extractor that built it; querying it with another one fails, naming the fix
+    (an old meta without the field was built with the weight-free random features)."""
+    folder = tmp_path / "db"
+    shutil.copytree(builds["full"].folder, folder)
+    with pytest.raises(DatabaseError, match="'vgg19' Gram feature extractor.*'random'.*db rebuild"):
+        PPTBFIndex.load(folder, extractor="random")
+    meta = json.loads((folder / "meta.json").read_text())
+    del meta["descriptor"]["extractor"]
+    (folder / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatabaseError, match="'random' Gram feature extractor.*'vgg19'"):
+        PPTBFIndex.load(folder)
+    assert PPTBFIndex.load(folder, extractor=None).config.extractor == "random"
+
+
 def test_index_query_and_distance(builds):
     idx = PPTBFIndex.load(builds["full"].folder)
     assert len(idx) == TINY.size and idx.resolution == 64
@@ -110,9 +135,12 @@ def test_index_query_and_distance(builds):
     assert all(a.distance <= b.distance for a, b in zip(hits, hits[1:]))
     np.testing.assert_array_equal(hits[0].params, idx.params[entry])
     assert all(idx.usable[h.entry_id] for h in idx.query(mask, k=50))
-    # a larger mask is resized to the database resolution: same pattern at 2x, same neighbour
-    big = pptbf.render_mask(idx.params[entry], 128, ref_width=64, pixel_scale=2.0)
-    assert entry in [h.entry_id for h in idx.query(big, k=3)]
+    # a larger mask is resized to the database resolution: same pattern at 2x, same neighbour (most of the time:
+    # the area-averaged, re-binarised mask is not the 64 px render)
+    found = [e in [h.entry_id for h in idx.query(pptbf.render_mask(idx.params[e], 128, ref_width=64,
+                                                                    pixel_scale=2.0), k=3)]
+             for e in np.flatnonzero(idx.usable)[:10]]
+    assert np.mean(found) >= 0.8, found
     other = pptbf.render_mask(idx.params[hits[-1].entry_id], 64)
     d = idx.distance(mask, other)
     assert d > 0 and idx.distance(mask, mask) == pytest.approx(0.0, abs=1e-5)
@@ -166,7 +194,7 @@ def test_load_errors(builds, tmp_path):
     with pytest.raises(DatabaseError, match="inconsistent"):
         PPTBFIndex.load(folder)
     (folder / "notes.txt").write_text("not a build file")
-    assert clear_database(folder) == 6 + 2 * N_CHUNKS
+    assert clear_database(folder) == 7 + 3 * N_CHUNKS
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
 
 

@@ -36,7 +36,9 @@ def test_layout_and_determinism():
     sl = block_slices(CFG, a.shape[1])
     assert a.dtype == np.float32 and np.isfinite(a).all()
     assert sl["lbp"].stop - sl["lbp"].start == len(CFG.lbp_radii) * (CFG.lbp_points + 2)
-    assert sl["gram"].stop - sl["gram"].start == sum(w * (w + 1) // 2 for w in CFG.gram_widths)
+    assert sl["gram"].stop - sl["gram"].start == CFG.gram_size == 4 * 16 * 17 // 2     # VGG-19, 16 directions
+    rnd = DescriptorConfig(extractor="random")
+    assert describe_masks(m, None, rnd).shape[1] - a.shape[1] == sum(w * (w + 1) // 2 for w in rnd.gram_widths) - 544
     assert sl["spectrum"].stop - sl["spectrum"].start == CFG.spectrum_radial + CFG.spectrum_angular
     np.testing.assert_array_equal(a, b)
     # a single 2-D mask is a batch of one, and batching does not change a descriptor

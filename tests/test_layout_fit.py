@@ -8,7 +8,7 @@ import pytest
 
 from pptbf_db import pptbf as pp
 from workers import lattice as L
-from workers.layout_fit import GramMaskLoss, loss_factor
+from workers.layout_fit import PLACEMENT, GramMaskLoss, loss_factor, transplant
 from workers.masks import MaskFitConfig, fit_pptbf_mask
 
 
@@ -44,6 +44,19 @@ def test_running_bond_comes_back_as_running_bond(bundled_index):
     assert ratio <= 2.0, ratio
     # the fit is a graph-node-ready vector at the fit's size
     assert fit.fit_size == (128, 128) and fit.node_params(256)["ref_width"] == 256
+
+
+def test_transplant_keeps_cells_and_takes_look():
+    """A transplant renders the placement vector's lattice with the appearance vector's cells: its fresh
+    realisation has the placement's lattice, and it carries the appearance's window and feature entries."""
+    place, target = _bond(size=128)
+    look = pp.sample_params(np.random.default_rng(5), 1, ref_width=128, crisp_share=1.0)[0]
+    look[pp.PARAM_INDEX["tiling"]], look[pp.PARAM_INDEX["resolution"]] = 16, 40.0
+    t = transplant(place, look)
+    for i, name in enumerate(pp.PARAM_NAMES):
+        assert t[i] == (place if name in PLACEMENT else look)[i], name
+    per, ang = L.compare_lattices(L.analyse_lattice(target), L.analyse_lattice(pp.render_mask(t, 128, shift=(9, 4))))
+    assert per <= 0.05 and ang <= 3.0, (per, ang)
 
 
 def test_tiny_budget_is_respected(bundled_index):

@@ -87,6 +87,26 @@ def test_sample_params_regular_share():
         pp.sample_params(np.random.default_rng(0), 10, regular_share=1.5)
 
 
+def test_sample_params_crisp_cells_and_balanced_tiling():
+    """Crisp cells: a disjoint, evenly spread share of cellular-window layouts without feature noise, at periods
+    of 1/12..1/3 of the width; balanced tiling: every family the same number of times."""
+    PI = pp.PARAM_INDEX
+    s = pp.sample_params(np.random.default_rng(0), 1800, ref_width=128, regular_share=0.15, crisp_share=0.35,
+                         balanced_tiling=True)
+    reg, crisp = pp.stratum_indices(1800, 0.15, 0.35)
+    assert len(reg) == 270 and len(crisp) == 630 and not set(reg) & set(crisp)
+    c = s[crisp]
+    assert (c[:, PI["window_shape"]] == 1).all() and (c[:, PI["feature_mixture"]] == 0).all()
+    assert (c[:, PI["window_blend"]] >= 0.9).all() and (c[:, PI["jitter"]] <= 0.15).all()
+    assert c[:, PI["resolution"]].min() >= 128 / 12 - 1 and c[:, PI["resolution"]].max() <= 128 / 3
+    assert 0.3 < np.isin(np.arange(900), crisp).mean() < 0.4       # the first half of a build gets its share
+    others = np.setdiff1d(np.arange(1800), np.concatenate([reg, crisp]))
+    assert (s[others, PI["feature_mixture"]] > 0).mean() > 0.7       # the rest stays uniform
+    assert np.array_equal(np.bincount(s[:, PI["tiling"]].astype(int)), np.full(18, 100))
+    with pytest.raises(ValueError, match="crisp_share"):
+        pp.sample_params(np.random.default_rng(0), 10, regular_share=0.7, crisp_share=0.5)
+
+
 def test_bad_params_raise_clear_errors():
     with pytest.raises(ValueError, match="29"):
         pp.evaluate(np.zeros(5), 16)

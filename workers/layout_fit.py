@@ -6,7 +6,9 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
 
 1. ``workers.lattice`` measures the target's lattice and turns it into starting vectors: tiling families whose
    cells sit on that lattice, with period, aspect and rotation solved for, and a crisp cellular window; the
-   database's nearest entries (both polarities) join them as further starts.
+   database's nearest entries (both polarities) join them as further starts, and so do transplants: the best
+   lattice starts' placement of cells (tiling, period, rotation, aspect, jitter, distortion) with a database
+   entry's look (cell window and features), for looks the crisp template cannot express.
 2. Every start is scored with the pretrained VGG-19 Gram distance (``GramMaskLoss``: relu1_1..relu4_1 of the
    mask, the paper's texture loss) plus an autocorrelation (layout) distance, at the target's resolution (up to 256 px), rendered there and area-averaged
    by an integer factor to the loss resolution (128 px for a 256 px mask), so 2-3 px mortar lines survive as
@@ -209,22 +211,53 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
     out = _Starts([], [])
     starts = [(p, c, "lattice") for p in pptbf_starts(lat, target.shape[1], max_matches=cfg.lattice_starts)
               for c in (bool(lat.network_is_white), not lat.network_is_white)]
+    matches = []
     if index is not None:
         for compl in (False, True):
             for mt in index.query(~target if compl else target, k=cfg.top_k, valid=valid):
                 out.query = out.query or (mt, compl)
-                starts.append((np.asarray(mt.params, np.float64), compl, "database"))
-    for p, compl, kind in starts:
-        if len(out.scored) >= max(1, max_evals - 1) or (out.scored and time.perf_counter() > deadline):
-            break
-        p = loss.with_threshold(p, compl)
-        out.scored.append((loss(p, compl), compl, p, kind))
-        out.history.append(min(s[0] for s in out.scored))
+                matches.append((np.asarray(mt.params, np.float64), compl))
+                starts.append((matches[-1][0], compl, "database"))
+
+    def score(batch) -> None:
+        for p, compl, kind in batch:
+            if len(out.scored) >= max(1, max_evals - 1) or (out.scored and time.perf_counter() > deadline):
+                return
+            p = loss.with_threshold(p, compl)
+            out.scored.append((loss(p, compl), compl, p, kind))
+            out.history.append(min(s[0] for s in out.scored))
+
+    score(starts)
+    out.scored.sort(key=lambda s: s[0])
+    score(_transplants(out.scored, matches))
     if out.query is not None:
         out.loss_query = loss(out.query[0].params, out.query[1], threshold_from_target=False)
         out.history.append(min(out.history[-1], out.loss_query))
     out.scored.sort(key=lambda s: s[0])
     return out
+
+
+#: entries a transplant takes from the lattice start (where the cells are); the rest (cell shape, features)
+#: comes from a database entry
+PLACEMENT = LAYOUT + ("jitter", "distortion_base", "distortion_amplitude", "distortion_frequency")
+#: lattice starts (best first) that receive the database entries' appearance
+TRANSPLANT_STARTS = 2
+
+
+def transplant(placement: np.ndarray, appearance: np.ndarray) -> np.ndarray:
+    """A vector with the cells of `placement` (PLACEMENT entries) and the look of `appearance` (the rest)."""
+    out = np.array(appearance, np.float64)
+    for name in PLACEMENT:
+        out[pp.PARAM_INDEX[name]] = placement[pp.PARAM_INDEX[name]]
+    return pp.clip_params(out)
+
+
+def _transplants(scored: list, matches: list) -> list[tuple[np.ndarray, bool, str]]:
+    """The database entries' appearance (window and feature settings, their polarity) on the best lattice starts'
+    cells: the database knows looks the crisp template cannot express (noisy, rounded or split cells), the
+    lattice knows where the cells are."""
+    lat = [s for s in scored if s[3] == "lattice"][:TRANSPLANT_STARTS]
+    return [(transplant(s[2], m_params), compl, "lattice") for s in lat for m_params, compl in matches]
 
 
 def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
