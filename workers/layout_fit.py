@@ -173,17 +173,25 @@ GATE_PERIOD, GATE_ANGLE = 0.10, 5.0
 GATE_CHECKS = 8
 
 
+#: fresh realisations (shifts from the fit's own) on which a candidate must show the target's lattice
+GATE_SHIFTS = ((53.3, 29.9), (17.7, 71.1))
+
+
 def _keeps_lattice(loss: GramMaskLoss, lat: Lattice, cand: tuple) -> bool:
-    """Whether a fresh realisation of candidate (loss, complement, params, ...) has the target's lattice
-    (period within 10 %, angle within 5 degrees)."""
+    """Whether fresh realisations of candidate (loss, complement, params, ...) have the target's lattice
+    (period within 10 %, angle within 5 degrees) on every shift of GATE_SHIFTS: a noisy candidate's lattice
+    analysis can pass on one realisation by chance."""
     from .lattice import analyse_lattice, compare_lattices
 
-    m = loss.render(cand[2], cand[1], True, shift=(loss.shift[0] + 53.3, loss.shift[1] + 29.9))
-    try:
-        per, ang = compare_lattices(lat, analyse_lattice(m))
-    except InputError:          # a uniform render
-        return False
-    return per <= GATE_PERIOD and ang <= GATE_ANGLE
+    for dx, dy in GATE_SHIFTS:
+        m = loss.render(cand[2], cand[1], True, shift=(loss.shift[0] + dx, loss.shift[1] + dy))
+        try:
+            per, ang = compare_lattices(lat, analyse_lattice(m))
+        except InputError:          # a uniform render
+            return False
+        if per > GATE_PERIOD or ang > GATE_ANGLE:
+            return False
+    return True
 
 
 def _lattice_gate(loss: GramMaskLoss, lat: Lattice, cands: list, at_most: int | None = None) -> list:
@@ -201,6 +209,7 @@ class _Starts:
     history: list[float]
     query: tuple | None = None          # (best database match, its complement)
     loss_query: float = float("nan")
+    matches: list = None                # database matches (params, complement) for transplants
 
 
 def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: MaskFitConfig,
@@ -228,8 +237,7 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
             out.history.append(min(s[0] for s in out.scored))
 
     score(starts)
-    out.scored.sort(key=lambda s: s[0])
-    score(_transplants(out.scored, matches))
+    out.matches = matches
     if out.query is not None:
         out.loss_query = loss(out.query[0].params, out.query[1], threshold_from_target=False)
         out.history.append(min(out.history[-1], out.loss_query))
@@ -240,8 +248,6 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
 #: entries a transplant takes from the lattice start (where the cells are); the rest (cell shape, features)
 #: comes from a database entry
 PLACEMENT = LAYOUT + ("jitter", "distortion_base", "distortion_amplitude", "distortion_frequency")
-#: lattice starts (best first) that receive the database entries' appearance
-TRANSPLANT_STARTS = 2
 
 
 def transplant(placement: np.ndarray, appearance: np.ndarray) -> np.ndarray:
@@ -252,12 +258,21 @@ def transplant(placement: np.ndarray, appearance: np.ndarray) -> np.ndarray:
     return pp.clip_params(out)
 
 
-def _transplants(scored: list, matches: list) -> list[tuple[np.ndarray, bool, str]]:
-    """The database entries' appearance (window and feature settings, their polarity) on the best lattice starts'
-    cells: the database knows looks the crisp template cannot express (noisy, rounded or split cells), the
-    lattice knows where the cells are."""
-    lat = [s for s in scored if s[3] == "lattice"][:TRANSPLANT_STARTS]
-    return [(transplant(s[2], m_params), compl, "lattice") for s in lat for m_params, compl in matches]
+def _transplants(loss: "GramMaskLoss", lat: Lattice, placement: tuple, matches: list, max_evals: int,
+                 deadline: float) -> tuple[list[tuple], list[float]]:
+    """The database entries' appearance (window and feature settings, their polarity) on the cells of a start
+    that keeps the lattice, scored; those that keep the lattice themselves, best first. The database knows
+    looks the crisp template cannot express (noisy, rounded or split cells), the lattice where the cells are.
+    Returns (the kept transplants, the loss of every evaluation in order)."""
+    out = []
+    for m_params, compl in matches[:max(0, max_evals)]:
+        if time.perf_counter() > deadline:
+            break
+        p = loss.with_threshold(transplant(placement[2], m_params), compl)
+        out.append((loss(p, compl), compl, p, "transplant"))
+    losses = [c[0] for c in out]
+    out.sort(key=lambda c: c[0])
+    return _lattice_gate(loss, lat, out, at_most=3), losses
 
 
 def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
@@ -309,6 +324,13 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
+        trans, t_losses = _transplants(loss, lat, kept[0], st.matches or [], left // 5,
+                                       t0 + 0.3 * (stage_deadline - t0))
+        history += list(np.minimum.accumulate([history[-1]] + t_losses)[1:])
+        n0, left = n0 + len(t_losses), left - len(t_losses)
+        if trans and trans[0][0] < lat_best[0]:
+            lat_best = trans[0]
+            cands.append((*trans[0], True))
     b1 = _window_stage(loss, lat_best, w, int(0.6 * left),
                        t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0), cfg, seed)
     history += b1.history
@@ -321,7 +343,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     gated = _lattice_gate(loss, lat, cands)
     # none keeps the lattice on a fresh realisation (a noisy target's own analysis is noisy too): the layouts
     # built on the lattice (window stage, lattice starts) rather than a database entry or a drifted polish
-    on_lattice = [c for c in cands if c[3] in ("window", "lattice")]
+    on_lattice = [c for c in cands if c[3] in ("window", "lattice", "transplant")]
     cands = (gated or on_lattice or cands)[:4]
     n_val, val = 0, None
     if reserve:               # the candidate best on fresh realisations
