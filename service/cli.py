@@ -605,7 +605,7 @@ def _add_db(sub) -> None:
                                     "database folder. Re-running the same command resumes an interrupted build: "
                                     "finished chunks are never recomputed.")
     r.add_argument("--size", type=int, default=None, metavar="N",
-                   help="number of entries (default 5000: about 3 min on 2 idle cores)")
+                   help="number of entries (default 5000: about 20 min on 2 idle cores with the VGG-19 descriptor)")
     r.add_argument("--workers", type=int, default=None, metavar="K",
                    help="parallel tasks (default: all CPUs of the local or connected Ray)")
     r.add_argument("--address", default=None, metavar="RAY", help="Ray cluster address (default: local Ray)")
