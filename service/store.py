@@ -348,13 +348,14 @@ class Store:
         return list(self.db["errors"].rows_where(where, args, order_by="id"))
 
     def stage_summary(self, job: str) -> list[dict]:
-        """Per material and stage: status, items done/total, attempts, executions, seconds."""
+        """Per material and stage: status, items done/total, attempts, executions, seconds, seconds waiting for a
+        slot."""
         order = "CASE stage " + " ".join(f"WHEN '{s}' THEN {i}" for i, s in enumerate(
             ("load", "decompose", "noise", "masks", "recompose", "output"))) + " ELSE 99 END"
         sql = (f"SELECT material, stage, COUNT(*) AS items, SUM(status = 'done') AS done, "
                f"SUM(status = 'failed') AS failed, SUM(status = 'unavailable') AS unavailable, "
                f"SUM(status = 'running') AS running, "
-               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, "
+               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, SUM(wait) AS wait, "
                f"GROUP_CONCAT(DISTINCT worker) AS workers, MAX(error) AS error "
                f"FROM stages WHERE job = ? GROUP BY material, stage ORDER BY material, {order}")
         cur = self.db.execute(sql, [job])

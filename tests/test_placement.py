@@ -177,6 +177,13 @@ def test_auto_falls_back_to_cpu_after_the_wait_and_cuda_fails(nodes, materials_d
     rec = next(r for r in rows if r["stage"] == "recompose")
     assert placement.node_of(rec["worker"]) == nodes.cpu
     assert any("no GPU actor started within job.gpu_wait_s" in r.getMessage() for r in caplog.records)
+    from service.report import ReportOptions, build_report
+
+    with Store(man.database) as s:   # the report says where and why
+        index = build_report(s, "fallback", tmp_path / "report", ReportOptions(editing=False))
+    page = index.read_text()
+    assert "recompose device" in page and "gpu_wait_s = 4" in page
+    assert "gpu_wait_s = 4" in (index.parent / "auto.html").read_text()
     _until(lambda: placement.pending_gpu_demand() == 0.0, 30, "the pending GPU demand to be withdrawn")
 
 
