@@ -307,8 +307,6 @@ class Scheduler:
         if kind not in self._pools:
             cpus = float(self._recompose_threads()) if kind == "cpu" else 1.0
             self._pools[kind] = _Pool(kind=kind, limit=self._limit(kind), cpus=cpus)
-            if kind == "gpu":
-                self._gpu_deadline = time.monotonic() + self.manifest.gpu_wait_s
         return self._pools[kind]
 
     def _start_actor(self, pool: _Pool) -> None:
@@ -406,11 +404,15 @@ class Scheduler:
                     self._pool(kind).queue.append(entry)
 
     def _check_gpu_wait(self) -> None:
+        """The wait for GPUs starts whenever the GPU pool has no running actor (at job start, or after its node
+        was lost) and ends when one runs; past ``job.gpu_wait_s`` GPU work gives up."""
         pool = self._pools.get("gpu")
-        if pool is None or self._gpu_gave_up or self._gpu_deadline is None:
+        if pool is None or self._gpu_gave_up:
             return
         if any(s.ready for s in pool.slots):
-            self._gpu_deadline = None  # a GPU actor runs: no more deadline in this run
+            self._gpu_deadline = None
+        elif self._gpu_deadline is None:
+            self._gpu_deadline = time.monotonic() + self.manifest.gpu_wait_s
         elif time.monotonic() >= self._gpu_deadline:
             self._give_up_gpu(f"no GPU actor started within job.gpu_wait_s = {self.manifest.gpu_wait_s:g} s "
                               f"(cluster: {placement.describe(self.capacity)})")
