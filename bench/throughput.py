@@ -125,34 +125,32 @@ def _load() -> str:
 
 def throughput(args: argparse.Namespace, dec: str) -> int:
     doc = job_doc(args.materials, args.working_size, args.iterations, args.out_size, dec, "cpu", args.pptbf_db)
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
-        for n in args.nodes:
-            before = _load()
-            r = run_on_nodes(n, args.cpus_per_node, doc, Path(tmp) / f"nodes{n}")
-            r["load"] = f"{before} -> {_load()}"
-            rows.append(r)
-            for name, err in r["errors"].items():
-                print(f"  [{n} nodes] {name} failed: {err}", file=sys.stderr)
-            print(f"  {n} node(s): {r['seconds']:.1f} s (load average {r['load']})", file=sys.stderr, flush=True)
-    stages = [s for s in STAGE_ORDER if any(s in r["run"] for r in rows)]
-    print(f"\n{args.materials} materials, working size {args.working_size}, decompose {dec}, recompose "
+    stages = [s for s in STAGE_ORDER if dec == "auto" or s != "masks"]
+    print(f"{args.materials} materials, working size {args.working_size}, decompose {dec}, recompose "
           f"{args.iterations} iterations on CPU, {args.cpus_per_node} CPU per node, head 0 CPU; "
           f"machine: {os.cpu_count()} cores")
     head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "items"] + \
            [f"{s} run s / wait %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
     print(" | ".join(head))
-    print(" | ".join("---" for _ in head))
-    base = rows[0]["seconds"]
-    for r in rows:
-        cells = [r["nodes"], r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
-                 f"{base / r['seconds']:.2f}x", r["items"]]
-        for s in stages:
-            run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
-            cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}%")
-        cells.append(r["load"])
-        print(" | ".join(str(c) for c in cells))
-    return 0 if all(r["failed"] == 0 for r in rows) else 1
+    print(" | ".join("---" for _ in head), flush=True)
+    failed = 0
+    base = None
+    with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
+        for n in args.nodes:   # each row printed as soon as it is measured
+            before = _load()
+            r = run_on_nodes(n, args.cpus_per_node, doc, Path(tmp) / f"nodes{n}")
+            base = base or r["seconds"]
+            for name, err in r["errors"].items():
+                print(f"  [{n} nodes] {name} failed: {err}", file=sys.stderr)
+            cells = [r["nodes"], r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
+                     f"{base / r['seconds']:.2f}x", r["items"]]
+            for s in stages:
+                run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
+                cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}%")
+            cells.append(f"{before} -> {_load()}")
+            print(" | ".join(str(c) for c in cells), flush=True)
+            failed += r["failed"]
+    return 0 if failed == 0 else 1
 
 
 def cuda_compare(args: argparse.Namespace, dec: str) -> int:
