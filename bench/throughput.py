@@ -1,17 +1,28 @@
-"""Batch throughput: materials per hour of one job on a local Ray with 1 vs 2 (or more) worker CPUs.
+"""Batch throughput: materials per hour of one job on 1, 2, 4 simulated CPU worker nodes, and where time waits.
 
-    python bench/throughput.py                          # 4 materials, working size 128, every available stage
-    python bench/throughput.py --cpus 1 2 4 --materials 6 --working-size 256 --stages load decompose noise
+    python bench/throughput.py                                  # 4 materials, working size 64, 1/2/4 nodes
+    python bench/throughput.py --nodes 1 2 --materials 6 --working-size 96
+    python bench/throughput.py --cuda                           # on a GPU machine: CPU vs CUDA recomposition
 
-Each configuration runs the same job from scratch (fresh output folder, fresh Ray) and prints a table:
-wall seconds, materials/hour, stage items run, and the summed per-stage seconds from the job database.
+Each configuration runs the same job from scratch (fresh output folder) on a fresh ``ray.cluster_utils.Cluster``:
+a head with no CPUs (it only hosts the driver, as in deploy/) and N worker nodes of ``--cpus-per-node`` CPUs.
+Every task and actor reserves the CPUs its threads use, so N one-CPU nodes are N cores' worth of work (on a
+machine with fewer cores than N x CPUs they share the cores, so read the 4-node row against ``nproc``).
+
+The table: wall seconds, materials/hour, speed-up over the first row, and per stage the share of its items'
+time spent waiting for a slot (``wait / (wait + run)`` from the job database: a task waiting for a CPU, a mask
+or recomposition call waiting in the driver's queue for an actor).
+
+``--cuda`` runs the job once with ``recompose.device = "cpu"`` and once with ``"cuda"`` on a local Ray that
+sees the machine's GPU, and prints per material the recomposition seconds, device and final loss of both.
 """
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import json
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -23,15 +34,11 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 from tests.conftest import REAL_MATERIALS, SHARED_MATERIALS, real_material_files  # noqa: E402
 
-
-def _bundled_db() -> bool:
-    from pptbf_db.index import default_database_path
-
-    return (default_database_path() / "meta.json").is_file()
+STAGE_ORDER = ["load", "decompose", "noise", "masks", "recompose", "output"]
 
 
-def job_doc(n: int, working_size: int, stages: list[str] | None, iterations: int, out_size: int,
-            decompose: str = "auto", pptbf_db: str | None = None) -> dict:
+def job_doc(n: int, working_size: int, iterations: int, out_size: int, decompose: str = "auto",
+            device: str = "auto", pptbf_db: str | None = None) -> dict:
     """A job of ``n`` real materials (cycling through the shared set under distinct names)."""
     names = list(REAL_MATERIALS)
     mats = []
@@ -41,21 +48,47 @@ def job_doc(n: int, working_size: int, stages: list[str] | None, iterations: int
         mats.append({"name": f"{src}_{i}", "albedo": str(f["albedo"]), "normal": str(f["normal"]),
                      "roughness": {"file": str(f["roughness"]), "channel": f["roughness_channel"] or 0},
                      "seed": i})
-    job = {"name": "bench", "output": "out"}
+    job: dict = {"name": "bench", "output": "out", "gpu_wait_s": 60}
     if pptbf_db:
         job["pptbf_database"] = str(Path(pptbf_db).resolve())
-    if stages:
-        job["stages"] = stages
     return {"job": job, "materials": mats,
-            "defaults": {"working_size": working_size, "recompose": {"iterations": iterations},
-                         "masks": {"max_evals": 40, "rounds": 1, "time_budget_s": 20.0},
-                         "decompose": {"mode": decompose, "layers": 2} if decompose == "auto" else {"mode": "none"},
+            "defaults": {"working_size": working_size, "recompose": {"iterations": iterations, "device": device},
+                         "masks": {"max_evals": 30, "rounds": 1, "time_budget_s": 15.0},
+                         "decompose": {"mode": "auto", "layers": 2} if decompose == "auto" else {"mode": "none"},
                          "outputs": {"sizes": [out_size], "seeds": [0]}}}
 
 
-def run_once(cpus: int, doc: dict, folder: Path) -> dict:
-    """Run the job on a fresh local Ray with ``cpus`` CPUs; returns timing and counts."""
+def _warm(nodes: list) -> None:
+    """Start one worker process per node outside the timing (Ray starts task workers lazily)."""
     import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    @ray.remote(num_cpus=1)
+    def ping() -> int:
+        import numpy  # noqa: F401  - what every stage imports first
+
+        return os.getpid()
+
+    ray.get([ping.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n.node_id, soft=False)).remote()
+             for n in nodes])
+
+
+def _summarise(store, job: str) -> tuple[dict, dict]:
+    """Per stage: summed run seconds and summed wait seconds."""
+    run: dict[str, float] = {}
+    wait: dict[str, float] = {}
+    for r in store.items(job):
+        if r["status"] != "done":
+            continue
+        run[r["stage"]] = run.get(r["stage"], 0.0) + (r["duration"] or 0.0)
+        wait[r["stage"]] = wait.get(r["stage"], 0.0) + (r["wait"] or 0.0)
+    return run, wait
+
+
+def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> dict:
+    """Run the job on a fresh cluster of ``n_nodes`` worker nodes; returns timing, counts and waits."""
+    import ray
+    from ray.cluster_utils import Cluster
 
     from service.manifest import validate
     from service.scheduler import Scheduler
@@ -64,62 +97,136 @@ def run_once(cpus: int, doc: dict, folder: Path) -> dict:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     man = validate(doc, root=folder)
-    ray.init(num_cpus=cpus, include_dashboard=False, logging_level="ERROR")
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
     try:
-        ray.get(ray.remote(lambda: 0).remote())  # worker start-up outside the timing
+        nodes = [cluster.add_node(num_cpus=cpus_per_node) for _ in range(n_nodes)]
+        ray.init(address=cluster.address, logging_level="ERROR",
+                 runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+        cluster.wait_for_nodes()
+        _warm(nodes)
         t0 = time.perf_counter()
         with Store(man.database) as store:
-            sched = Scheduler(man, store=store, progress=False)
-            report = sched.run()
+            report = Scheduler(man, store=store, progress=False).run()
             seconds = time.perf_counter() - t0
-            per_stage: dict[str, float] = {}
-            for r in store.items(man.name):
-                per_stage[r["stage"]] = per_stage.get(r["stage"], 0.0) + (r["duration"] or 0.0)
+            run, wait = _summarise(store, man.name)
+            devices = {m["name"]: m["device"] for m in store.materials(man.name)}
     finally:
         ray.shutdown()
+        cluster.shutdown()
     done = sum(s == "done" for s in report.materials.values())
-    return {"cpus": cpus, "seconds": seconds, "done": done, "failed": len(report.materials) - done,
-            "per_hour": done / seconds * 3600.0, "items": report.executed, "per_stage": per_stage,
-            "errors": report.errors}
+    return {"nodes": n_nodes, "cpus": n_nodes * cpus_per_node, "seconds": seconds, "done": done,
+            "failed": len(report.materials) - done, "per_hour": done / seconds * 3600.0, "items": report.executed,
+            "run": run, "wait": wait, "errors": report.errors, "devices": devices}
+
+
+def _load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def throughput(args: argparse.Namespace, dec: str) -> int:
+    doc = job_doc(args.materials, args.working_size, args.iterations, args.out_size, dec, "cpu", args.pptbf_db)
+    stages = [s for s in STAGE_ORDER if dec == "auto" or s != "masks"]
+    print(f"{args.materials} materials, working size {args.working_size}, decompose {dec}, recompose "
+          f"{args.iterations} iterations on CPU, {args.cpus_per_node} CPU per node, head 0 CPU; "
+          f"machine: {os.cpu_count()} cores")
+    head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "items"] + \
+           [f"{s} run s / wait %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
+    print(" | ".join(head))
+    print(" | ".join("---" for _ in head), flush=True)
+    failed = 0
+    base = None
+    with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
+        for n in args.nodes:   # each row printed as soon as it is measured
+            before = _load()
+            r = run_on_nodes(n, args.cpus_per_node, doc, Path(tmp) / f"nodes{n}")
+            base = base or r["seconds"]
+            for name, err in r["errors"].items():
+                print(f"  [{n} nodes] {name} failed: {err}", file=sys.stderr)
+            cells = [r["nodes"], r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
+                     f"{base / r['seconds']:.2f}x", r["items"]]
+            for s in stages:
+                run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
+                cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}%")
+            cells.append(f"{before} -> {_load()}")
+            print(" | ".join(str(c) for c in cells), flush=True)
+            failed += r["failed"]
+    return 0 if failed == 0 else 1
+
+
+def cuda_compare(args: argparse.Namespace, dec: str) -> int:
+    """The same job with recomposition on CPU and on CUDA (local Ray with the machine's GPU)."""
+    import ray
+    import torch
+
+    from service.manifest import validate
+    from service.scheduler import Scheduler
+    from service.store import Store
+
+    if not torch.cuda.is_available():
+        print("--cuda needs a machine where torch sees a CUDA device", file=sys.stderr)
+        return 2
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-cuda-") as tmp:
+        ray.init(include_dashboard=False, logging_level="ERROR",
+                 runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+        try:
+            for device in ("cpu", "cuda"):
+                doc = job_doc(args.materials, args.working_size, args.iterations, args.out_size, dec, device,
+                              args.pptbf_db)
+                doc["job"]["stages"] = ["load", "decompose", "noise", "masks", "recompose"]
+                folder = Path(tmp) / device
+                folder.mkdir()
+                man = validate(doc, root=folder)
+                t0 = time.perf_counter()
+                with Store(man.database) as store:
+                    report = Scheduler(man, store=store, progress=False).run()
+                    devices = {m["name"]: m["device"] for m in store.materials(man.name)}
+                wall = time.perf_counter() - t0
+                for name in report.materials:
+                    p = man.output / name / "recompose" / "report.json"
+                    rep = json.loads(p.read_text()) if p.is_file() else {}
+                    out.setdefault(name, {})[device] = {"seconds": rep.get("seconds_total"),
+                                                        "loss": rep.get("loss_after"), "device": devices.get(name),
+                                                        "error": report.errors.get(name)}
+                print(f"  {device}: job wall {wall:.1f} s", file=sys.stderr)
+        finally:
+            ray.shutdown()
+    gpu = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                         text=True).stdout.strip() or torch.cuda.get_device_name(0)
+    print(f"\n{args.materials} materials, working size {args.working_size}, {args.iterations} iterations; GPU {gpu}; "
+          f"CPU side {torch.get_num_threads()} threads max; load average {_load()}")
+    print("material | cpu s | cuda s | speed-up | cpu loss | cuda loss | loss diff % | devices")
+    print("--- | --- | --- | --- | --- | --- | --- | ---")
+    worst = 0.0
+    for name, d in out.items():
+        c, g = d.get("cpu", {}), d.get("cuda", {})
+        if c.get("loss") is None or g.get("loss") is None:
+            print(f"{name} | failed: {c.get('error') or g.get('error')}")
+            continue
+        diff = 100 * abs(g["loss"] - c["loss"]) / max(abs(c["loss"]), 1e-12)
+        worst = max(worst, diff)
+        print(f"{name} | {c['seconds']:.1f} | {g['seconds']:.1f} | {c['seconds'] / g['seconds']:.2f}x | "
+              f"{c['loss']:.5f} | {g['loss']:.5f} | {diff:.2f} | {c['device']}/{g['device']}")
+    print(f"largest final-loss difference {worst:.2f} % (acceptance: within 5 %)")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cpus", type=int, nargs="+", default=[1, 2], help="worker CPU counts to compare")
+    ap.add_argument("--nodes", type=int, nargs="+", default=[1, 2, 4], help="worker node counts to compare")
+    ap.add_argument("--cpus-per-node", type=int, default=1)
     ap.add_argument("--materials", type=int, default=4)
-    ap.add_argument("--working-size", type=int, default=128)
-    ap.add_argument("--stages", nargs="+", default=None, help="stage subset (default: every available stage)")
+    ap.add_argument("--working-size", type=int, default=64)
     ap.add_argument("--iterations", type=int, default=20, help="recompose iterations")
-    ap.add_argument("--out-size", type=int, default=256, help="output map size")
-    ap.add_argument("--decompose", choices=("auto", "none"), default=None,
-                    help="split mode (default: auto when a PPTBF database is available, else none)")
+    ap.add_argument("--out-size", type=int, default=128, help="output map size")
+    ap.add_argument("--decompose", choices=("auto", "none"), default="auto")
     ap.add_argument("--pptbf-db", default=None, help="PPTBF database folder (default: the bundled one)")
+    ap.add_argument("--cuda", action="store_true", help="compare CPU and CUDA recomposition instead")
     args = ap.parse_args(argv)
     if not SHARED_MATERIALS.is_dir():
         print(f"shared materials not found at {SHARED_MATERIALS}", file=sys.stderr)
         return 2
-    dec = args.decompose or ("auto" if importlib.util.find_spec("workers.decompose") and (args.pptbf_db or _bundled_db())
-                             else "none")
-    doc = job_doc(args.materials, args.working_size, args.stages, args.iterations, args.out_size, dec, args.pptbf_db)
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
-        for cpus in args.cpus:
-            r = run_once(cpus, doc, Path(tmp) / f"cpus{cpus}")
-            rows.append(r)
-            for name, err in r["errors"].items():
-                print(f"  [{cpus} cpu] {name} failed: {err}", file=sys.stderr)
-    stages = sorted({s for r in rows for s in r["per_stage"]},
-                    key=lambda s: ["load", "decompose", "noise", "masks", "recompose", "output"].index(s))
-    print(f"\n{args.materials} materials, working size {args.working_size}, decompose {dec}, stages "
-          f"{' '.join(stages)} (timings noisy on a shared machine)")
-    head = ["cpus", "wall s", "done", "failed", "materials/h", "speed-up", "items"] + [f"{s} s" for s in stages]
-    print(" | ".join(head))
-    base = rows[0]["seconds"]
-    for r in rows:
-        cells = [r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
-                 f"{base / r['seconds']:.2f}x", r["items"]] + [f"{r['per_stage'].get(s, 0):.1f}" for s in stages]
-        print(" | ".join(str(c) for c in cells))
-    return 0
+    return cuda_compare(args, args.decompose) if args.cuda else throughput(args, args.decompose)
 
 
 if __name__ == "__main__":

@@ -539,15 +539,21 @@ def _cmd_status(args) -> int:
         mats = store.materials(name)
     if args.json:
         print(json.dumps({"job": job["name"], "status": job["status"], "runs": job.get("runs"),
-                          "materials": [{k: m[k] for k in ("name", "status", "error")} for m in mats],
+                          "materials": [{k: m.get(k) for k in ("name", "status", "error", "device", "device_note")}
+                                        for m in mats],
                           "stages": summary}, indent=1))
         return 0
     print(f"job {name}: {_job_state(job)} (run {job.get('runs')}, started {_fmt_time(job['started'])}, "
           f"finished {_fmt_time(job['finished'])})")
     _print_table([(s["material"], s["stage"], s["status"], f"{s['done']}/{s['items']}", s["attempts"],
-                   s["executions"], f"{s['seconds']:.1f}" if s["seconds"] else "-", (s["error"] or "")[:100])
+                   s["executions"], f"{s['seconds']:.1f}" if s["seconds"] else "-",
+                   f"{s['wait']:.1f}" if s["wait"] else "-", (s["error"] or "")[:100])
                   for s in summary],
-                 header=("material", "stage", "status", "items", "attempts", "runs", "seconds", "error"))
+                 header=("material", "stage", "status", "items", "attempts", "runs", "seconds", "waited", "error"))
+    for m in mats:
+        if m.get("device"):
+            print(f"{m['name']}: recomposed on {m['device']}" + (f" ({m['device_note']})" if m.get("device_note")
+                                                                  else ""))
     return 0
 
 

@@ -43,7 +43,9 @@ DEFAULT_DATABASE = "proceduralize.db"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 _CHANNEL_RE = re.compile(r"^([RGBA]|[0-9]|[A-Za-z][A-Za-z0-9_.]*)$")
 
-JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database"}
+JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database",
+            "gpu_wait_s", "recompose_cpus"}
+RECOMPOSE_DEVICES = ("auto", "cuda", "cpu")
 MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "metallic_channel",
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
                  "noise", "masks", "recompose", "stages"}
@@ -151,6 +153,8 @@ class JobManifest:
     debug: dict = field(default_factory=dict)
     description: str = ""
     pptbf_database: Path | None = None
+    gpu_wait_s: float = 600.0    # how long GPU recompositions wait for a GPU node before "auto" runs them on CPU
+    recompose_cpus: int = 2      # CPUs (= torch threads) one CPU recomposition actor reserves
 
     def material(self, name: str) -> MaterialSpec:
         """The material called ``name`` (KeyError if absent)."""
@@ -169,6 +173,7 @@ class JobManifest:
                 "output": str(self.output), "database": str(self.database), "stages": self.stages,
                 "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "debug": self.debug,
                 "description": self.description, "pptbf_database": str(self.pptbf_database or ""),
+                "gpu_wait_s": self.gpu_wait_s, "recompose_cpus": self.recompose_cpus,
                 "materials": [m.to_json() for m in self.materials]}
 
 
@@ -470,6 +475,8 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
             fields = _config_fields(key)
             if fields is not None:
                 probs.unknown(f"{where}.{key}", set(c), fields)
+        if key == "recompose" and c.get("device", "auto") not in RECOMPOSE_DEVICES:
+            probs.add(f"{where}.recompose.device", f"must be one of {list(RECOMPOSE_DEVICES)}, got {c['device']!r}")
         confs[key] = c
     stages = _stage_list(merged.get("stages"), f"{where}.stages", probs)
     out_name = raw.get("output", name or f"material_{i}")
@@ -567,6 +574,14 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
     if mask_actors is not None and not (_is_int(mask_actors) and 1 <= mask_actors <= 1024):
         probs.add("job.mask_actors", f"must be an integer 1..1024, got {mask_actors!r}")
         mask_actors = None
+    gpu_wait = job.get("gpu_wait_s", 600.0)
+    if not (_is_num(gpu_wait) and 0 <= gpu_wait <= 86400):
+        probs.add("job.gpu_wait_s", f"must be a number of seconds 0..86400, got {gpu_wait!r}")
+        gpu_wait = 600.0
+    rec_cpus = job.get("recompose_cpus", 2)
+    if not (_is_int(rec_cpus) and 1 <= rec_cpus <= 256):
+        probs.add("job.recompose_cpus", f"must be an integer 1..256, got {rec_cpus!r}")
+        rec_cpus = 2
     pdb = job.get("pptbf_database")
     if pdb is not None and (not isinstance(pdb, str) or not pdb):
         probs.add("job.pptbf_database", f"must be a PPTBF database folder path, got {pdb!r}")
@@ -600,4 +615,5 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
     return JobManifest(name=name, source=Path(source) if source else None, root=root, output=output,
                        database=database, stages=stages, materials=materials, max_attempts=int(max_attempts),
                        mask_actors=mask_actors, debug=debug, description=str(job.get("description", "")),
-                       pptbf_database=(root / Path(pdb).expanduser()).resolve(strict=False) if pdb else None)
+                       pptbf_database=(root / Path(pdb).expanduser()).resolve(strict=False) if pdb else None,
+                       gpu_wait_s=float(gpu_wait), recompose_cpus=int(rec_cpus))

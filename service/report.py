@@ -240,14 +240,16 @@ def _tree_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
     return f"<ul class='tree'>{item(doc.get('summary') or doc['tree'])}</ul>"
 
 
-def _recompose_section(mdir: Path) -> str:
-    """Loss before/after the recomposition, iterations, device and seconds."""
+def _recompose_section(mdir: Path, material: dict | None = None) -> str:
+    """Loss before/after the recomposition, iterations, device (and why, when not the one asked for), seconds."""
     rep = _read_json(mdir / "recompose" / "report.json")
     before, after = rep.get("loss_before"), rep.get("loss_after")
     change = f"{100 * (after - before) / before:+.1f}%" if before and after is not None else "-"
     rows = [("loss before", _num(before)), ("loss after", _num(after)), ("change", change),
             ("iterations", _num(rep.get("iterations"))), ("device", _num(rep.get("device"))),
             ("kept original", _num(rep.get("kept_original"))), ("seconds", _num(rep.get("seconds_total")))]
+    if material and material.get("device_note"):
+        rows.insert(5, ("placement", _e(material["device_note"])))
     return _table(("recomposition", "value"), rows)
 
 
@@ -419,14 +421,15 @@ def _material_page(store, job: dict, material: dict, root: Path, opts: ReportOpt
     key = safe_name(material["name"])
     mdir = Path(job["output"]) / (material["output"] or material["name"])
     page = _Page(root=root, img_dir=f"img/{key}")
-    summary: dict[str, Any] = {"name": material["name"], "page": f"{key}.html", "status": material["status"]}
+    summary: dict[str, Any] = {"name": material["name"], "page": f"{key}.html", "status": material["status"],
+                               "device": material.get("device"), "device_note": material.get("device_note")}
     t0 = time.perf_counter()
     parts = [f"<p><a href='index.html'>&larr; job {_e(job['name'])}</a></p>",
              f"<h1>{_e(material['name'])}</h1><p>status {_status(material['status'])} &middot; "
              f"folder <code>{_e(mdir)}</code></p>",
              _section("Input vs procedural maps", lambda: _maps_section(page, mdir, opts, summary)),
              _section("Decomposition tree", lambda: _tree_section(page, mdir, opts)),
-             _section("Recomposition", lambda: _recompose_section(mdir))]
+             _section("Recomposition", lambda: _recompose_section(mdir, material))]
     mine = [r for r in (metrics or {}).get("rows", []) if r.get("material") == material["name"]]
     parts.append(_section("Metrics", lambda: _metrics_table(mine, ("map", "method")) + _protocol(metrics) if mine
                           else _metrics_hint(job_ref) if metrics is None else
@@ -461,6 +464,13 @@ def _metrics_summary(rows: list[dict]) -> str:
     return _metrics_table(out, ("map", "method", "materials"))
 
 
+def _device(summary: dict) -> str:
+    """The recomposition device, with why it is not the one asked for (fallback, GPU without CUDA)."""
+    dev = _e(summary.get("device") or "-")
+    note = summary.get("device_note")
+    return f"{dev} <span class='muted'>({_e(note)})</span>" if note else dev
+
+
 def _index_page(store, job: dict, summaries: list[dict], metrics: dict | None, job_ref: str) -> str:
     """The job page: job facts, one row per material (linked), stage summary, mean metrics."""
     dur = (job["finished"] - job["started"]) if job.get("finished") and job.get("started") else None
@@ -474,9 +484,11 @@ def _index_page(store, job: dict, summaries: list[dict], metrics: dict | None, j
         thumb = f'<img src="{_e(s["thumb"])}" height="64" alt="render">' if s.get("thumb") else "-"
         loss = s.get("loss")
         rows.append((f'<a href="{_e(s["page"])}">{_e(s["name"])}</a>', _status(s["status"]), thumb,
-                     f"{_num(loss[0])} &rarr; {_num(loss[1])}" if loss else "-", _num(s.get("seconds"), 3),
+                     f"{_num(loss[0])} &rarr; {_num(loss[1])}" if loss else "-", _device(s),
+                     _num(s.get("seconds"), 3),
                      f"<span class='bad'>{s['errors']}</span>" if s.get("errors") else "0"))
-    mats = _table(("material", "status", "procedural render", "recompose loss", "stage seconds", "errors"), rows)
+    mats = _table(("material", "status", "procedural render", "recompose loss", "recompose device", "stage seconds",
+                   "errors"), rows)
     stages = _table(("material", "stage", "status", "items done", "attempts", "seconds", "workers"), [
         (_e(r["material"]), _e(r["stage"]), _status(r["status"]), f"{r['done']}/{r['items']}", _num(r["attempts"]),
          _num(r["seconds"], 3), _e(r["workers"] or "-")) for r in store.stage_summary(job["name"])])

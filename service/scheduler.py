@@ -4,17 +4,24 @@ The driver (this module) is the only writer to the job database. It submits the 
 material at once and, as results come back, records them and submits what became ready:
 
     load -> decompose -> { noise (one task per leaf x map), masks (one call per tree node, on a pool of
-    CPU actors holding the PPTBF index) } -> recompose (GPU actor when the cluster has GPUs, else CPU)
-    -> output
+    CPU actors holding the PPTBF index) } -> recompose (GPU or CPU actors, see service.placement) -> output
 
 Worker crashes (WorkerCrashedError, RayActorError, ...) are retried up to ``max_attempts``; an
 exception inside a stage fails only its material. A stage item whose row is done and whose artefacts are
 on disk with the recorded checksums is skipped on a rerun (resume).
 
-Actors request no CPU (``num_cpus=0``): a 2-CPU cluster holding two idle actors that each reserved a CPU
-would starve the tasks they wait for. GPUs are requested only when ``ray.cluster_resources()`` has them, and
-the custom resource ``mask_fitter`` only when some node advertises it (deploy/ puts it on the CPU group, so
-mask actors stay off a zero-CPU head node).
+Reservations are honest: tasks reserve 1 CPU and run 1 torch thread; a mask actor reserves 1 CPU; a CPU
+recomposition actor reserves ``job.recompose_cpus`` CPUs and runs that many threads; a GPU one reserves 1 GPU
+and 1 CPU. Actor stages queue in the driver and go to an idle actor of their pool, one call per actor at a time,
+so recomposition of one material overlaps mask fitting of others, bounded by the pools' sizes (GPUs the cluster
+has or can reach; CPUs / reservation), and the time an item waits for a slot is measured (``stages.wait``).
+Pools grow with their queue up to that bound, and an idle actor whose queue is empty is retired when the work
+in flight needs its CPUs, so idle actors never starve the tasks they wait for on a small cluster.
+
+GPU actors are requested at job start when some material routes to them, so a GPU group that scales from zero
+sees the demand (pending actors) while the first stages run. When no GPU actor has started after
+``job.gpu_wait_s``, "auto" materials recompose on CPU (warning logged, ``materials.device_note`` says why) and
+"cuda" materials fail with that reason.
 """
 from __future__ import annotations
 
@@ -22,19 +29,25 @@ import logging
 import os
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import pipeline
+from service import pipeline, placement
 from service.manifest import JobManifest, MaterialSpec
 from service.pipeline import DEPENDS, NOISE_MAPS, STAGES, StageCall
 from service.store import Store
 
 logger = logging.getLogger(__name__)
 
-#: custom Ray resource that pins mask-fitting actors to the CPU worker group when a cluster advertises it
-MASK_RESOURCE = "mask_fitter"
+MASK_RESOURCE = placement.MASK_RESOURCE
+#: actor pools: mask fitting, recomposition on CPU, recomposition on GPU
+POOLS = ("masks", "cpu", "gpu")
+#: a pool whose actors fail to start this many times in a row gives up and fails the materials it holds
+MAX_START_FAILURES = 3
+#: seconds between two reads of the cluster's capacity while a job runs
+CAPACITY_REFRESH_S = 5.0
 
 
 @dataclass
@@ -76,7 +89,35 @@ class _Flight:
     stage: str
     item: str
     attempt: int
-    actor: Any = None
+    actor: Any = None        # the _Slot running it (actor stages)
+    queued: float = 0.0      # wall time the item became ready (its wait for a slot is measured from here)
+
+
+@dataclass
+class _Slot:
+    """One actor of a pool: starting (``ready`` False), idle, or running one call (``busy``)."""
+
+    handle: Any
+    ready_ref: Any
+    ready: bool = False
+    busy: Any = None
+    started: float = 0.0     # monotonic time the actor was requested
+    node: str = ""
+    device: str = "cpu"
+    note: str | None = None
+
+
+@dataclass
+class _Pool:
+    """Actors of one kind and the driver-side queue of the items waiting for one of them."""
+
+    kind: str
+    limit: int
+    cpus: float                      # CPUs each actor reserves
+    queue: deque = field(default_factory=deque)   # (material, stage, item, attempt, queued wall time)
+    slots: list = field(default_factory=list)
+    start_failures: int = 0
+    started: int = 0
 
 
 def _retryable_errors() -> tuple[type, ...]:
@@ -113,28 +154,43 @@ def _on_node(result: dict) -> dict:
 
 
 def run_stage_task(call: dict) -> dict:
-    """Body of the per-stage Ray task."""
+    """Body of the per-stage Ray task (1 CPU reserved, 1 thread)."""
+    placement.use_threads(1)
     return _on_node(pipeline.run_stage(call))
 
 
 class _StageActor:
-    """Ray actor body: holds a MaskFitter (PPTBF index loaded once) or a Recomposer and runs stage calls."""
+    """Ray actor body: holds a MaskFitter (PPTBF index loaded once) or a Recomposer and runs stage calls.
 
-    def __init__(self, kind: str, device: str = "cpu", database: str | None = None, threads: int = 2):
+    Its torch threads follow its CPU reservation; a recomposer placed for CUDA checks that torch sees a device
+    and otherwise runs on CPU (logged, and noted in each result's info)."""
+
+    def __init__(self, kind: str, device: str = "cpu", database: str | None = None, threads: int = 1):
         from workers.actors import MaskFitter, Recomposer
 
-        if kind == "recompose" and device == "cpu":  # a 0-CPU actor would otherwise use every core
-            import torch
-
-            torch.set_num_threads(threads)
+        placement.use_threads(threads, load_torch=kind == "recompose")
         self.kind = kind
-        self.resources = MaskFitter(database) if kind == "masks" else Recomposer(device)
+        self.device, self.note = placement.pick_torch_device(device) if kind == "recompose" else ("cpu", None)
+        self.resources = MaskFitter(database) if kind == "masks" else Recomposer(self.device)
 
     def run(self, call: dict) -> dict:
-        return _on_node(pipeline.run_stage(call, self.resources))
+        if self.kind == "recompose":  # the actor's device wins over the material's option (which chose the pool)
+            call["material"]["recompose"] = dict(call["material"].get("recompose") or {}, device=self.device)
+        result = _on_node(pipeline.run_stage(call, self.resources))
+        if self.kind == "recompose" and self.note:
+            result["info"]["placement_note"] = self.note
+        return result
 
-    def ready(self) -> str:
-        return f"{self.kind} actor pid {os.getpid()}"
+    def ready(self) -> dict:
+        import ray
+
+        return {"pid": os.getpid(), "node": ray.get_runtime_context().get_node_id()[:8], "device": self.device,
+                "note": self.note, "threads": _torch_threads()}
+
+
+def _torch_threads() -> int | None:
+    torch = sys.modules.get("torch")
+    return torch.get_num_threads() if torch is not None else None
 
 
 class Scheduler:
@@ -149,13 +205,14 @@ class Scheduler:
         self._own_store = store is None
         self.progress = progress
         self.mask_database = mask_database or (str(manifest.pptbf_database) if manifest.pptbf_database else None)
-        res = ray.cluster_resources()
-        self.cpus = float(res.get("CPU", 1.0))
-        self.gpus = int(res.get("GPU", 0))
-        self.mask_slots = int(res.get(MASK_RESOURCE, 0))
+        self.capacity = placement.read_capacity()
+        self._capacity_at = time.monotonic()
         self._task = ray.remote(num_cpus=1, max_retries=0)(run_stage_task)
-        self._pools: dict[str, list] = {}
-        self._rr: dict[str, int] = {}
+        self._pools: dict[str, _Pool] = {}
+        self._starting: dict[Any, tuple[_Pool, _Slot]] = {}   # actor ready() ref -> its slot
+        self._gpu_deadline: float | None = None
+        self._gpu_gave_up: str | None = None   # why GPU recomposition was abandoned in this run
+        self._notes: dict[str, str] = {}       # material -> why it was recomposed on another device than asked
         self.inflight: dict[Any, _Flight] = {}
         self.mats: dict[str, _Material] = {}
         self.executed = 0
@@ -163,6 +220,14 @@ class Scheduler:
         self._retryable = _retryable_errors()
         self._tries: dict[tuple[str, str, str], int] = {}
         self._bar = None
+
+    @property
+    def cpus(self) -> float:
+        return self.capacity.cpus
+
+    @property
+    def gpus(self) -> int:
+        return self.capacity.gpus
 
     # -- planning
 
@@ -213,62 +278,213 @@ class Scheduler:
         return StageCall(job=self.manifest.name, root=str(self.manifest.output), material=m.spec.to_json(),
                          stage=stage, item=item, debug=self.manifest.debug).to_dict()
 
-    def _new_actor(self, kind: str) -> Any:
-        """One stage actor: 'masks' (CPU, PPTBF index) or 'recompose' (a GPU when the cluster has them)."""
-        import ray
+    # -- actor pools
 
+    def _refresh_capacity(self) -> None:
+        """Re-read the cluster (nodes join and leave while a job runs) and re-bound the pools."""
+        if time.monotonic() - self._capacity_at < CAPACITY_REFRESH_S:
+            return
+        self.capacity = placement.read_capacity()
+        self._capacity_at = time.monotonic()
+        for pool in self._pools.values():
+            pool.limit = self._limit(pool.kind)
+
+    def _recompose_threads(self) -> int:
+        return placement.cpu_threads(self.manifest.recompose_cpus, self.capacity)
+
+    def _limit(self, kind: str) -> int:
+        """Most actors of a pool: masks CPUs/2 (or job.mask_actors, within ``mask_fitter`` slots); CPU
+        recomposition CPUs / its reservation; GPU recomposition the GPUs the cluster has or can reach."""
+        cap = self.capacity
         if kind == "masks":
-            opts: dict[str, Any] = {"num_cpus": 0}
-            if self.mask_slots:  # deploy configs advertise this resource on the CPU worker group
-                opts["resources"] = {MASK_RESOURCE: 1}
-            args = ("masks", "cpu", self.mask_database)
-        else:
-            opts = {"num_cpus": 0, "num_gpus": 1} if self.gpus else {"num_cpus": 0}
-            args = ("recompose", "cuda" if self.gpus else "cpu", None)
-        return ray.remote(max_restarts=0, max_task_retries=0, **opts)(_StageActor).remote(*args)
+            n = self.manifest.mask_actors or max(1, int(cap.cpus) // 2)
+            return min(n, cap.mask_slots) if cap.mask_slots else n
+        if kind == "gpu":
+            return max(1, cap.max_gpus)
+        return max(1, int(cap.cpus // self._recompose_threads()))
 
-    def _pool(self, kind: str) -> list:
-        """The actor pool of a kind, created on first use (masks: CPUs/2 or job.mask_actors; recompose: 1 per GPU)."""
+    def _pool(self, kind: str) -> _Pool:
         if kind not in self._pools:
-            if kind == "masks":
-                n = self.manifest.mask_actors or max(1, int(self.cpus) // 2)
-                n = min(n, self.mask_slots) if self.mask_slots else n
-            else:  # one per GPU; on CPU clusters one per 2 CPUs (each actor's torch uses 2 threads)
-                n = self.gpus if self.gpus else max(1, int(self.cpus) // 2)
-            self._pools[kind] = [self._new_actor(kind) for _ in range(n)]
-            self._rr[kind] = 0
-            logger.info("started %d %s actor(s) (%d GPU in the cluster)", n, kind, self.gpus)
+            cpus = float(self._recompose_threads()) if kind == "cpu" else 1.0
+            self._pools[kind] = _Pool(kind=kind, limit=self._limit(kind), cpus=cpus)
         return self._pools[kind]
 
-    def _replace_actor(self, kind: str, dead: Any) -> None:
-        """Swap a dead actor for a fresh one (once per dead handle; later failures of it find it gone)."""
+    def _start_actor(self, pool: _Pool) -> None:
+        """Request one more actor for ``pool`` (pending until Ray, or the autoscaler, finds it a node)."""
         import ray
 
-        pool = self._pools.get(kind, [])
-        for i, a in enumerate(pool):
-            if a is dead:
-                try:
-                    ray.kill(a, no_restart=True)
-                except Exception:  # noqa: BLE001 - already gone
-                    pass
-                pool[i] = self._new_actor(kind)
-                logger.warning("replaced a dead %s actor", kind)
-                return
+        threads = int(pool.cpus)
+        opts = placement.actor_options(pool.kind, threads, self.capacity)
+        args = (("masks", "cpu", self.mask_database, 1) if pool.kind == "masks" else
+                ("recompose", "cuda" if pool.kind == "gpu" else "cpu", None, threads))
+        handle = ray.remote(max_restarts=0, max_task_retries=0, **opts)(_StageActor).remote(*args)
+        slot = _Slot(handle=handle, ready_ref=handle.ready.remote(), started=time.monotonic())
+        pool.slots.append(slot)
+        pool.started += 1
+        self._starting[slot.ready_ref] = (pool, slot)
+        logger.info("requested a %s actor %s (%d in the pool, at most %d)", pool.kind, opts, len(pool.slots),
+                    pool.limit)
+
+    def _drop_slot(self, pool: _Pool, slot: _Slot) -> None:
+        """Kill an actor and forget it (a retired idle one, a dead one, a pending one no longer wanted)."""
+        import ray
+
+        if slot in pool.slots:
+            pool.slots.remove(slot)
+        self._starting.pop(slot.ready_ref, None)
+        try:
+            ray.kill(slot.handle, no_restart=True)
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+
+    def _on_actor_ready(self, ref: Any) -> None:
+        import ray
+
+        pool, slot = self._starting.pop(ref)
+        try:
+            info = ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - the actor could not start (constructor raised, node lost)
+            self._drop_slot(pool, slot)
+            pool.start_failures += 1
+            msg = f"a {pool.kind} actor failed to start: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+            logger.warning("%s", msg)
+            if pool.start_failures >= MAX_START_FAILURES:
+                self._pool_broken(pool, msg)
+            return
+        slot.ready, slot.node, slot.device, slot.note = True, info["node"], info["device"], info["note"]
+        pool.start_failures = 0
+        log = logger.warning if slot.note else logger.info
+        log("%s actor pid %s ready on node %s: torch on %s, %s thread(s)%s", pool.kind, info["pid"], info["node"],
+            info["device"], info["threads"], f" ({slot.note})" if slot.note else "")
+
+    def _pool_broken(self, pool: _Pool, why: str) -> None:
+        """Actors of ``pool`` keep failing to start: GPU work falls back like a GPU that never came; else the
+        queued materials fail with the reason."""
+        if pool.kind == "gpu":
+            self._give_up_gpu(f"GPU actors failed to start {pool.start_failures} times ({why})")
+            return
+        for name, *_ in list(pool.queue):
+            self._fail_material(self.mats[name], f"{pool.kind} actors failed to start {pool.start_failures} "
+                                                 f"times: {why}")
+        pool.queue.clear()
+
+    def _recompose_kind(self, m: _Material) -> str | None:
+        """The pool that recomposes ``m`` ("gpu" or "cpu"), or None when it cannot run (material failed)."""
+        device = (m.spec.recompose or {}).get("device", "auto")
+        kind = placement.recompose_route(device, self.capacity)
+        if kind == "gpu" and self._gpu_gave_up:
+            if device == "cuda":
+                self._fail_material(m, f"recompose: recompose.device = 'cuda' but {self._gpu_gave_up}")
+                return None
+            self._notes[m.spec.name] = f"{self._gpu_gave_up}; recomposed on CPU (recompose.device = 'auto')"
+            return "cpu"
+        return kind
+
+    def _wants_gpu(self, m: _Material) -> bool:
+        """True when ``m`` will recompose on a GPU in this run (not failed, not finished by an earlier run)."""
+        return (m.error is None and "recompose" in m.plan
+                and placement.recompose_route((m.spec.recompose or {}).get("device", "auto"), self.capacity) == "gpu"
+                and not self._stage_done_before(m.spec.name, "recompose"))
+
+    def _give_up_gpu(self, why: str) -> None:
+        """Stop waiting for GPUs: withdraw the pending GPU actors and move the GPU queue to CPU ("auto")."""
+        self._gpu_gave_up = why
+        logger.warning("%s; 'auto' recompositions run on CPU, 'cuda' ones fail", why)
+        pool = self._pools.get("gpu")
+        if pool is None:
+            return
+        for slot in [s for s in pool.slots if not s.ready]:
+            self._drop_slot(pool, slot)
+        queued, pool.queue = list(pool.queue), deque()
+        for entry in queued:
+            m = self.mats[entry[0]]
+            if m.error is None:
+                kind = self._recompose_kind(m)
+                if kind is not None:
+                    self._pool(kind).queue.append(entry)
+
+    def _check_gpu_wait(self) -> None:
+        """The wait for GPUs starts whenever the GPU pool has no running actor (at job start, or after its node
+        was lost) and ends when one runs; past ``job.gpu_wait_s`` GPU work gives up."""
+        pool = self._pools.get("gpu")
+        if pool is None or self._gpu_gave_up:
+            return
+        if any(s.ready for s in pool.slots):
+            self._gpu_deadline = None
+        elif self._gpu_deadline is None:
+            self._gpu_deadline = time.monotonic() + self.manifest.gpu_wait_s
+        elif time.monotonic() >= self._gpu_deadline:
+            self._give_up_gpu(f"no GPU actor started within job.gpu_wait_s = {self.manifest.gpu_wait_s:g} s "
+                              f"(cluster: {placement.describe(self.capacity)})")
+
+    def _enqueue(self, m: _Material, stage: str, item: str, attempt: int) -> None:
+        """Queue an actor-stage item in the driver; ``_pump`` hands it to an idle actor of its pool."""
+        kind = "masks" if stage == "masks" else self._recompose_kind(m)
+        if kind is None:
+            return
+        self.store.mark_item(self.manifest.name, m.spec.name, stage, item, "queued")
+        self._pool(kind).queue.append((m.spec.name, stage, item, attempt, time.time()))
+
+    def _dispatch(self, slot: _Slot, entry: tuple) -> None:
+        name, stage, item, attempt, queued = entry
+        m = self.mats[name]
+        self.store.start_item(self.manifest.name, name, stage, item)
+        ref = slot.handle.run.remote(self._call(m, stage, item))
+        slot.busy = ref
+        self.inflight[ref] = _Flight(name, stage, item, attempt, slot, queued)
+
+    def _pump(self) -> None:
+        """Hand queued items to idle actors, grow pools to their queue (within their bound), retire idle actors
+        whose CPUs the work in flight needs, and give up on GPUs after the wait."""
+        self._refresh_capacity()
+        self._check_gpu_wait()
+        for pool in list(self._pools.values()):
+            pool.queue = deque(e for e in pool.queue if self.mats[e[0]].error is None)
+            for slot in pool.slots:
+                if not pool.queue:
+                    break
+                if slot.ready and slot.busy is None:
+                    self._dispatch(slot, pool.queue.popleft())
+            if pool.kind == "gpu" and self._gpu_gave_up:
+                continue
+            busy = sum(s.busy is not None for s in pool.slots)
+            while len(pool.slots) < min(pool.limit, busy + len(pool.queue)):
+                self._start_actor(pool)
+        self._retire_idle()
+
+    def _retire_idle(self) -> None:
+        """Kill idle CPU actors with nothing queued while the CPUs reserved by the work in flight exceed the
+        cluster's (tasks are waiting for them), or while an actor has waited long for a node (fragmentation)."""
+        pools = [p for p in self._pools.values() if p.kind != "gpu"]
+        idle = [(p, s) for p in pools if not p.queue for s in p.slots if s.ready and s.busy is None]
+        if not idle:
+            return
+        tasks = sum(fl.actor is None for fl in self.inflight.values())
+        gpu_held = sum(s.ready for s in self._pools["gpu"].slots) if "gpu" in self._pools else 0
+        held = sum(p.cpus * len(p.slots) for p in pools) + gpu_held
+        excess = tasks + held - self.capacity.cpus
+        stuck = any(not s.ready and time.monotonic() - s.started > 30.0 for p in pools for s in p.slots)
+        for pool, slot in idle:
+            if excess <= 0 and not stuck:
+                break
+            logger.info("retiring an idle %s actor on node %s (its CPUs are needed)", pool.kind, slot.node)
+            self._drop_slot(pool, slot)
+            excess -= pool.cpus
+            stuck = False
+
+    def _queued(self) -> int:
+        return sum(len(p.queue) for p in self._pools.values())
 
     def _submit(self, m: _Material, stage: str, item: str) -> None:
-        self.store.start_item(self.manifest.name, m.spec.name, stage, item)
         key = (m.spec.name, stage, item)
         attempt = self._tries[key] = self._tries.get(key, 0) + 1  # attempts in this run decide retries
-        call = self._call(m, stage, item)
-        actor = None
         if stage in ("masks", "recompose"):
-            pool = self._pool(stage)
-            actor = pool[self._rr[stage] % len(pool)]
-            self._rr[stage] += 1
-            ref = actor.run.remote(call)
-        else:
-            ref = self._task.options(name=f"{m.spec.name}:{stage}:{item}"[:100]).remote(call)
-        self.inflight[ref] = _Flight(m.spec.name, stage, item, attempt, actor)
+            self._enqueue(m, stage, item, attempt)
+            return
+        self.store.start_item(self.manifest.name, m.spec.name, stage, item)
+        call = self._call(m, stage, item)
+        ref = self._task.options(name=f"{m.spec.name}:{stage}:{item}"[:100]).remote(call)
+        self.inflight[ref] = _Flight(m.spec.name, stage, item, attempt, None, time.time())
 
     def _advance(self, m: _Material) -> None:
         """Submit every stage of ``m`` whose prerequisites are done; reuse finished items (resume)."""
@@ -315,7 +531,12 @@ class Scheduler:
 
     def _on_result(self, fl: _Flight, result: dict) -> None:
         m = self.mats[fl.material]
-        self.store.finish_item(self.manifest.name, fl.material, fl.stage, fl.item, result)
+        wait = max(0.0, float(result.get("started", fl.queued)) - fl.queued) if fl.queued else None
+        self.store.finish_item(self.manifest.name, fl.material, fl.stage, fl.item, result, wait=wait)
+        if fl.stage == "recompose":
+            info = result.get("info", {})
+            self.store.set_device(self.manifest.name, fl.material, str(info.get("device", "cpu")),
+                                  info.get("placement_note") or self._notes.get(fl.material))
         self.executed += 1
         self._bar_step()
         if fl.item == "" and fl.stage in ("load", "decompose"):
@@ -355,8 +576,11 @@ class Scheduler:
                   " ".join(str(exc).split())[:500]
             self.store.fail_item(self.manifest.name, fl.material, fl.stage, fl.item, msg, type(exc).__name__,
                                  final=final)
-            if fl.actor is not None:
-                self._replace_actor(fl.stage, fl.actor)
+            if fl.actor is not None:  # the actor is gone: drop it, the pool starts another on demand
+                for pool in self._pools.values():
+                    if fl.actor in pool.slots:
+                        self._drop_slot(pool, fl.actor)
+                logger.warning("dropped a dead %s actor", fl.stage)
             if final:
                 self._fail_material(m, f"{where}: worker lost {fl.attempt} times: {msg}")
             else:
@@ -412,8 +636,8 @@ class Scheduler:
             for m in job.materials])
         if reset:
             logger.warning("materials changed since the last run, recomputed from scratch: %s", ", ".join(reset))
-        logger.info("job %s run %d: %d materials, %.0f CPU, %d GPU", job.name, runs, len(job.materials),
-                    self.cpus, self.gpus)
+        logger.info("job %s run %d: %d materials on %s", job.name, runs, len(job.materials),
+                    placement.describe(self.capacity))
         self._bar = tqdm(total=0, unit="item", desc=job.name, file=sys.stderr, leave=False,
                          disable=not (self.progress and sys.stderr.isatty()))
         try:
@@ -424,12 +648,30 @@ class Scheduler:
                 if err:
                     self._fail_material(m, err)
                     continue
-                self._advance(m)
-                self._maybe_finish(m)
-            while self.inflight:
-                ready, _ = ray.wait(list(self.inflight), num_returns=1, timeout=2.0)
+            gpu_work = sum(self._wants_gpu(m) for m in self.mats.values())
+            if gpu_work:  # request GPU actors now: a GPU group scaling from zero boots while the CPU stages run
+                pool = self._pool("gpu")
+                for _ in range(min(pool.limit, gpu_work)):
+                    self._start_actor(pool)
+            for m in self.mats.values():
+                if m.error is None:
+                    self._advance(m)
+                    self._maybe_finish(m)
+            self._pump()
+            while self.inflight or self._queued():
+                refs = list(self.inflight) + list(self._starting)
+                if not refs:  # queued work but no actor can be started for it
+                    for pool in self._pools.values():
+                        self._pool_broken(pool, "no actor could be started")
+                    break
+                ready, _ = ray.wait(refs, num_returns=1, timeout=2.0)
                 for ref in ready:
+                    if ref in self._starting:
+                        self._on_actor_ready(ref)
+                        continue
                     fl = self.inflight.pop(ref)
+                    if fl.actor is not None and fl.actor.busy is ref:
+                        fl.actor.busy = None
                     try:
                         result = ray.get(ref)
                     except Exception as exc:  # noqa: BLE001 - classified in _on_error
@@ -439,6 +681,7 @@ class Scheduler:
                         self.store.finish_item(job.name, fl.material, fl.stage, fl.item, result)
                         continue
                     self._on_result(fl, result)
+                self._pump()
             for m in self.mats.values():
                 if m.error is None:
                     missing = [s for s in m.plan if s not in m.done]
@@ -455,8 +698,8 @@ class Scheduler:
             if self._bar is not None:
                 self._bar.close()
             for pool in self._pools.values():
-                for a in pool:
-                    ray.kill(a, no_restart=True)
+                for slot in list(pool.slots):
+                    self._drop_slot(pool, slot)
             self._pools.clear()
         statuses = {m.spec.name: ("failed" if m.error else "done") for m in self.mats.values()}
         report = JobReport(job=job.name, database=self.store.path, output=job.output, materials=statuses,

@@ -68,7 +68,15 @@ def _v2(db: sqlite_utils.Database) -> None:
     db["jobs"].add_column("runs", int, not_null_default=0)
 
 
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1, _v2]
+def _v3(db: sqlite_utils.Database) -> None:
+    """Placement: the device a material was recomposed on (and why, when not the one asked for); per stage item
+    the seconds it waited for a slot (from ready to started)."""
+    db["materials"].add_column("device", str)
+    db["materials"].add_column("device_note", str)
+    db["stages"].add_column("wait", float)
+
+
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1, _v2, _v3]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -200,6 +208,11 @@ class Store:
                 db.execute("UPDATE materials SET status = ?, error = ?, finished = ? WHERE id = ?",
                            [status, error, now if status in ("done", "failed") else None, f"{job}/{material}"])
 
+    def set_device(self, job: str, material: str, device: str, note: str | None = None) -> None:
+        """Record the torch device a material's recomposition ran on and, if it is not the one asked for, why."""
+        with self.tx() as db:
+            db.execute("UPDATE materials SET device = ?, device_note = ? WHERE id = ?", [device, note, f"{job}/{material}"])
+
     # -- stage items
 
     def item(self, job: str, material: str, stage: str, item: str = "") -> dict | None:
@@ -222,8 +235,10 @@ class Store:
             return db.execute("SELECT attempts FROM stages WHERE job = ? AND material = ? AND stage = ? AND item = ?",
                               [job, material, stage, item]).fetchone()[0]
 
-    def finish_item(self, job: str, material: str, stage: str, item: str, result: dict) -> None:
-        """Record a finished execution: its artefacts (replacing older ones), timing, worker and info."""
+    def finish_item(self, job: str, material: str, stage: str, item: str, result: dict,
+                    wait: float | None = None) -> None:
+        """Record a finished execution: its artefacts (replacing older ones), timing, worker, info and the seconds
+        it waited for a slot."""
         now = _now()
         with self.tx() as db:
             self._ensure_item(db, job, material, stage, item)
@@ -235,10 +250,10 @@ class Store:
                            [job, material, stage, item, a["path"], a.get("kind", ""), a["checksum"],
                             a.get("bytes"), now])
             db.execute("UPDATE stages SET status = 'done', executions = executions + 1, started = ?, finished = ?, "
-                       "duration = ?, worker = ?, error = NULL, info = ? "
+                       "duration = ?, worker = ?, error = NULL, info = ?, wait = ? "
                        "WHERE job = ? AND material = ? AND stage = ? AND item = ?",
                        [result.get("started", now), result.get("finished", now), result.get("duration"),
-                        result.get("worker"), json.dumps(result.get("info", {}), default=str),
+                        result.get("worker"), json.dumps(result.get("info", {}), default=str), wait,
                         job, material, stage, item])
 
     def fail_item(self, job: str, material: str, stage: str, item: str, message: str, kind: str = "",
@@ -333,13 +348,14 @@ class Store:
         return list(self.db["errors"].rows_where(where, args, order_by="id"))
 
     def stage_summary(self, job: str) -> list[dict]:
-        """Per material and stage: status, items done/total, attempts, executions, seconds."""
+        """Per material and stage: status, items done/total, attempts, executions, seconds, seconds waiting for a
+        slot."""
         order = "CASE stage " + " ".join(f"WHEN '{s}' THEN {i}" for i, s in enumerate(
             ("load", "decompose", "noise", "masks", "recompose", "output"))) + " ELSE 99 END"
         sql = (f"SELECT material, stage, COUNT(*) AS items, SUM(status = 'done') AS done, "
                f"SUM(status = 'failed') AS failed, SUM(status = 'unavailable') AS unavailable, "
                f"SUM(status = 'running') AS running, "
-               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, "
+               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, SUM(wait) AS wait, "
                f"GROUP_CONCAT(DISTINCT worker) AS workers, MAX(error) AS error "
                f"FROM stages WHERE job = ? GROUP BY material, stage ORDER BY material, {order}")
         cur = self.db.execute(sql, [job])

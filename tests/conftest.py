@@ -51,8 +51,15 @@ def ray_session():
     """One local Ray instance (2 CPUs) for the whole test session, always shut down."""
     import ray
 
+    start_local_ray()
+    yield ray
+    ray.shutdown()
+
+
+def start_local_ray() -> None:
+    """The session's local Ray (2 CPUs); also how a test that needed its own cluster gives the session back."""
+    import ray
+
     if not ray.is_initialized():
         ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING",
                  runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
-    yield ray
-    ray.shutdown()
