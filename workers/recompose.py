@@ -67,7 +67,8 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
 
     ``leaf_nodes[leaf.id][map_name]`` is the graph node generating that map inside the leaf (e.g. a ``noise``
     node); ``mask_nodes[child.id]`` the graph node (1-channel mask, e.g. ``pptbf`` or ``channel`` of
-    ``instances``) giving that child's mask inside its parent. ``maps`` defaults to the maps every leaf provides
+    ``instances``) giving that child's mask inside its parent; the masks of a split should partition it (the
+    blends are normalised by the sum of the blurred masks). ``maps`` defaults to the maps every leaf provides
     (order albedo, roughness, height, metallic). With a height map, a ``normal`` output ``from_height`` with
     ``height_strength`` (and ``tilt``) is declared. Internal node ``n`` and map ``m`` get id ``{prefix}_{n}_{m}``
     (dots of tree ids become underscores: graph ids cannot hold dots).
@@ -100,7 +101,7 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
             ins[f"mask{i}"] = mask_nodes[child.id]
             ins[f"child{i}"] = build(child, m)
         return material.add(f"{prefix}_{node.id.replace('.', '_')}_{m}", "blend",
-                            {"sigmas": [float(blend_sigma)] * len(node.children)}, **ins)
+                            {"sigmas": [float(blend_sigma)] * len(node.children), "normalise": True}, **ins)
 
     existing = {e["name"] for e in material.maps}
     for m in maps:
@@ -521,14 +522,18 @@ class TorchGraph:
             m = mask("mask", sig(f"{nid}.sigma", float(p.get("sigma", 0.0))))
             return m * ins["fg"] + (1.0 - m) * ins["bg"]
         stored = list(p.get("sigmas", []))
-        out, i = None, 0
+        out, total, i = None, None, 0
         while f"mask{i}" in ins:
             s = sig(f"{nid}.sigmas.{i}", float(stored[i]) if i < len(stored) else 0.0)
-            term = mask(f"mask{i}", s) * ins[f"child{i}"]
+            m = mask(f"mask{i}", s)
+            term = m * ins[f"child{i}"]
             out = term if out is None else out + term
+            total = m if total is None else total + m
             i += 1
         if out is None:
             raise GraphError(f"blend node {nid} has no inputs")
+        if p.get("normalise", False):
+            out = out / total.clamp_min(G.NORMALISE_EPS)
         return out
 
     def forward(self, vals: Mapping[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
