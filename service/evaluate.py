@@ -109,7 +109,7 @@ def evaluate_material_dir(mdir: Path, name: str, seed: int = 0, seed_offset: int
     w, h = reference_size(inputs)
     eval_seed = int(mat.seed) + seed_offset
     t0 = time.perf_counter()
-    procedural = graph.evaluate(mat, w, h, seed=eval_seed)
+    procedural = graph.evaluate(mat, w, h, scale=mat.working_scale, seed=eval_seed)  # the inputs' pattern size
     t_graph = time.perf_counter() - t0
     try:
         rows = evaluate_material(inputs, procedural, seed=seed, material=name, config=config or EvalConfig())

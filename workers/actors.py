@@ -82,7 +82,8 @@ class Recomposer:
         from workers.recompose import MAP_ORDER, assemble_material
 
         w, h = material.size
-        proc = G.new_material(seed=seed, working_size=(w, h))
+        orig = material.meta.get("original_size")
+        proc = G.new_material(seed=seed, working_size=(w, h), input_size=tuple(orig) if orig else None)
 
         def gid(prefix: str, tree_id: str, suffix: str = "") -> str:
             """Graph node id from a tree id: no dots (edit paths are ``node.param``)."""
