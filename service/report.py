@@ -267,7 +267,7 @@ def read_metrics(job_out: Path) -> dict | None:
 
 
 def _metrics_table(rows: list[dict], keys: tuple[str, ...]) -> str:
-    cols = keys + ("swd", "spectrum", "histogram")
+    cols = keys + ("swd", "spectrum", "histogram", "gram")
     return _table(cols, [tuple(_num(r.get(k)) for k in cols) for r in rows])
 
 
