@@ -3,7 +3,7 @@
 Run: python bench/job_panels.py JOB_DIR [--out DIR] [--seed 0]
 
 Per material folder of JOB_DIR (one with material.json), one PNG: top row the input albedo at the working size
-(load/maps) | the procedural albedo regenerated at the same size and scale 1 (a fresh seed); bottom row each
+(load/maps) | the procedural albedo regenerated at the same size and pattern size (a fresh seed); bottom row each
 decomposition mask (decompose/masks) | its fitted PPTBF mask rendered as the graph renders it. Also prints, per
 material and mask, the lattice of the decomposition mask and of the fitted mask (period, kind).
 """
@@ -35,7 +35,7 @@ def material_panel(mdir: Path, seed: int) -> tuple[np.ndarray, list[str]]:
     mat = graph.load(mdir / "material.json")
     albedo_in = read_image(mdir / "load" / "maps" / "albedo.png")[..., :3]
     h, w = albedo_in.shape[:2]
-    maps = graph.evaluate(mat, w, h, scale=1.0, seed=seed)
+    maps = graph.evaluate(mat, w, h, scale=mat.working_scale, seed=seed)  # the working input's pattern size
     rows = [np.concatenate([albedo_in, np.ones((h, 4, 3), np.float32), linear_to_srgb(maps["albedo"])[..., :3]], 1)]
     lines = []
     for fit_file in sorted((mdir / "masks").glob("*.json")):

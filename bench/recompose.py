@@ -6,6 +6,11 @@ parameters, not fitted: this measures the optimiser, not the mask fit) and the r
 
     python bench/recompose.py --size 256 --iterations 100 --optimizer adam lbfgs --threads 2
     python bench/recompose.py --npz maps.npz ...   # arrays albedo/normal/roughness/height (+ height_scale)
+    python bench/recompose.py --size 512 --iterations 60 --optimizer adam --features vgg19 random \
+        --loss-size 128 256 --vgg-layers 3 4        # what the loss resolution and layers cost and keep
+
+"check" is independent of the loss settings: the mean over albedo, normal, roughness, height of the full-size,
+4-layer VGG-19 Gram distance (workers.evaluate) of the optimised maps (another seed) to the target.
 """
 from __future__ import annotations
 
@@ -68,6 +73,18 @@ def build(target: dict, size: int, leaves: int, seed: int = 0) -> G.ProceduralMa
     return proc
 
 
+def check(proc: G.ProceduralMaterial, maps: dict) -> float:
+    """Mean full-size 4-layer VGG-19 Gram distance of the material's maps (seed 5) to the target maps."""
+    from workers.evaluate import gram_distance_images, vgg_image
+
+    h, w = maps["albedo"].shape[:2]
+    out = G.evaluate(proc, w, h, scale=proc.working_scale, seed=5)
+    names = [m for m in ("albedo", "normal", "roughness", "height") if m in out and m in maps]
+    hr = (float(maps["height"].min()), float(maps["height"].max())) if "height" in maps else None
+    return float(np.mean([gram_distance_images(vgg_image(m, maps[m], hr)[None], vgg_image(m, out[m], hr)[None])
+                          for m in names]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--material", default="castle_brick_broken_06")
@@ -80,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", nargs="+", default=["cpu"])
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (the 2-core target)")
     ap.add_argument("--lr", type=float, default=0.02)
+    ap.add_argument("--features", nargs="+", default=["vgg19"])
+    ap.add_argument("--loss-size", type=int, nargs="+", default=[128])
+    ap.add_argument("--vgg-layers", type=int, nargs="+", default=[3])
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     target = load_target(args)
@@ -91,16 +111,24 @@ def main(argv: list[str] | None = None) -> int:
     proc = build(target, args.size, args.leaves)
     t_build = time.perf_counter() - t0
     maps = {k: v for k, v in target.items() if k != "height_scale"}
-    rows = [("size", "leaves", "iterations", "optimizer", "device", "threads", "seconds", "s/iter", "loss before",
-             "loss after", "ratio")]
+    rows = [("size", "leaves", "iterations", "optimizer", "features", "loss size", "layers", "device", "threads",
+             "seconds", "s/iter", "loss before", "loss after", "ratio", "check before", "check after")]
+    check_before = check(proc, maps)
+    combos = [(f, ls, nl) for f in args.features for ls in args.loss_size
+              for nl in (args.vgg_layers if f == "vgg19" else [0])]
     for dev in args.device:
         for opt in args.optimizer:
             for it in args.iterations:
-                res = optimise(proc, maps, RecomposeConfig(iterations=it, optimizer=opt, device=dev, lr=args.lr))
-                rows.append((f"{args.size}", f"{args.leaves}", f"{it}", opt, res.device, f"{args.threads}",
-                             f"{res.seconds:.1f}", f"{res.seconds / max(it, 1):.3f}", f"{res.loss_before:.4f}",
-                             f"{res.loss_after:.4f}", f"{res.loss_before / max(res.loss_after, 1e-12):.2f}"))
-                print("  ".join(rows[-1]), flush=True)
+                for feats, lsize, nl in combos:
+                    cfg = RecomposeConfig(iterations=it, optimizer=opt, device=dev, lr=args.lr, features=feats,
+                                          loss_size=lsize, vgg_layers=max(nl, 1))
+                    res = optimise(proc, maps, cfg)
+                    rows.append((f"{args.size}", f"{args.leaves}", f"{it}", opt, feats, f"{lsize}", f"{nl or '-'}",
+                                 res.device, f"{args.threads}", f"{res.seconds:.1f}",
+                                 f"{res.seconds / max(it, 1):.3f}", f"{res.loss_before:.4f}", f"{res.loss_after:.4f}",
+                                 f"{res.loss_before / max(res.loss_after, 1e-12):.2f}", f"{check_before:.4f}",
+                                 f"{check(res.material, maps):.4f}"))
+                    print("  ".join(rows[-1]), flush=True)
     print(f"\n{args.material if not args.npz else args.npz}: noise fits + masks built in {t_build:.1f} s")
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for j, r in enumerate(rows):

@@ -157,7 +157,8 @@ def _add_render(sub) -> None:
                                    "plus preview.png (top light | side light).")
     p.add_argument("material", type=Path, metavar="MATERIAL.json")
     p.add_argument("--size", type=_size, required=True, metavar="WxH", help="output size, e.g. 2048x2048")
-    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale (2 = features twice as big)")
+    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale: 1 = the input maps' pattern size (files without input_size: the "
+                        "working size's), 2 = features twice as big")
     p.add_argument("--seed", type=int, default=None, help="realisation seed (default: the material's own)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bit depth of albedo and normal PNGs")

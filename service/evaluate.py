@@ -24,13 +24,15 @@ if TYPE_CHECKING:  # workers.evaluate pulls numpy/scipy/torch: imported inside f
 logger = logging.getLogger(__name__)
 
 SEED_OFFSET = 1000
-METRICS = ("swd", "spectrum", "histogram")  # == workers.evaluate.METRICS (checked in tests)
+METRICS = ("swd", "spectrum", "histogram", "gram")  # == workers.evaluate.METRICS (checked in tests)
 COLUMNS = ("material", "map", "method", *METRICS)
 PROTOCOL = ("reference = left half of each working-size input map; procedural = graph re-evaluated at the "
             "reference size with seed = graph seed + seed_offset; half = right half of the input (the floor); "
             "rpn = random phase noise of the whole input map, left-half crop (normal: RPN of the normal's xyz, "
             "renormalised); flat = mean of the whole input map; render = GGX under the paper's 16 lights, "
-            "tonemapped, metrics averaged over lights; lower is better")
+            "tonemapped, metrics averaged over lights; gram = pretrained VGG-19 Gram distance (relu1_1..relu4_1) "
+            "of the map as an image, gram ratios in units of the half row (the input's own left-to-right "
+            "distance); lower is better")
 
 
 @dataclass
@@ -48,6 +50,12 @@ class JobEvaluation:
         from workers.evaluate import summarise
 
         return summarise(self.rows)
+
+    def gram(self) -> tuple[list[dict], dict]:
+        """VGG-19 Gram ratios to the floor per (material, map), and their summary (workers.evaluate)."""
+        from workers.evaluate import gram_ratios, gram_summary
+
+        return gram_ratios(self.rows), gram_summary(self.rows)
 
 
 def _clean(v):
@@ -94,7 +102,8 @@ def evaluate_material_dir(mdir: Path, name: str, seed: int = 0, seed_offset: int
     from service.pipeline import read_npz
     from workers import graph
     from workers.errors import InputError
-    from workers.evaluate import EvalConfig, evaluate_material, reference_size, summarise
+    from workers.evaluate import (EvalConfig, evaluate_material, gram_ratios, gram_summary, reference_size,
+                                  summarise)
 
     graph_file, maps_file = mdir / "material.json", mdir / "load" / "maps.npz"
     if not graph_file.is_file():
@@ -109,7 +118,7 @@ def evaluate_material_dir(mdir: Path, name: str, seed: int = 0, seed_offset: int
     w, h = reference_size(inputs)
     eval_seed = int(mat.seed) + seed_offset
     t0 = time.perf_counter()
-    procedural = graph.evaluate(mat, w, h, seed=eval_seed)
+    procedural = graph.evaluate(mat, w, h, scale=mat.working_scale, seed=eval_seed)  # the inputs' pattern size
     t_graph = time.perf_counter() - t0
     try:
         rows = evaluate_material(inputs, procedural, seed=seed, material=name, config=config or EvalConfig())
@@ -119,7 +128,8 @@ def evaluate_material_dir(mdir: Path, name: str, seed: int = 0, seed_offset: int
            "input_size": [int(inputs["albedo"].shape[1]), int(inputs["albedo"].shape[0])],
            "reference_size": [w, h], "graph_seed": int(mat.seed), "evaluation_seed": eval_seed,
            "metric_seed": seed, "graph_seconds": round(t_graph, 3), "protocol": PROTOCOL,
-           "rows": [r.to_dict() for r in rows], "summary": summarise(rows)}
+           "rows": [r.to_dict() for r in rows], "summary": summarise(rows),
+           "gram_ratios": gram_ratios(rows), "gram_summary": gram_summary(rows)}
     return rows, doc
 
 
@@ -166,15 +176,19 @@ def evaluate_job(store, job: str, out: Path | None = None, seed: int = 0, seed_o
 
 
 def write_results(ev: JobEvaluation, seed: int, seed_offset: int) -> list[Path]:
-    """metrics.csv (every row), summary.csv (per method) and metrics.json (both + skipped) in ``ev.output``."""
+    """metrics.csv (every row), summary.csv (per method), gram.csv (VGG-19 Gram ratios to the floor per material
+    and map) and metrics.json (all of them + skipped) in ``ev.output``."""
     rows = [r.to_dict() for r in ev.rows]
     summary = ev.summary()
     scols = tuple(summary[0]) if summary else ("method",)
+    gram_rows, gram_sum = ev.gram()
     doc = {"job": ev.job, "protocol": PROTOCOL, "metric_seed": seed, "seed_offset": seed_offset,
-           "columns": list(COLUMNS), "rows": rows, "summary": summary,
+           "columns": list(COLUMNS), "rows": rows, "summary": summary, "gram_ratios": gram_rows,
+           "gram_summary": gram_sum,
            "skipped": [{"material": n, "reason": r} for n, r in ev.skipped], "seconds": round(ev.seconds, 3)}
     return [_write_csv(ev.output / "metrics.csv", rows, COLUMNS),
             _write_csv(ev.output / "summary.csv", summary, scols),
+            _write_csv(ev.output / "gram.csv", gram_rows, ("material", "map", "procedural", "rpn", "flat")),
             _write_json(ev.output / "metrics.json", doc)]
 
 
@@ -194,6 +208,18 @@ def print_report(ev: JobEvaluation) -> None:
         _print_table([(s["method"], s["rows"], *(_fmt(s[k]) for k in METRICS),
                        *(_fmt(s[f"{k}_ratio_to_half"]) for k in METRICS)) for s in summary],
                      header=("method (mean)", "rows", *METRICS, *(f"{k}/half" for k in METRICS)))
+    gram_rows, gram_sum = ev.gram()
+    if gram_rows:
+        print("\nVGG-19 Gram distance to the input, in units of the input's own left-to-right distance (1 = floor)")
+        _print_table([(d["material"], d["map"], *(_fmt(d.get(k, float("nan"))) for k in ("procedural", "rpn", "flat")),
+                       "yes" if d.get("procedural", math.inf) < d.get("rpn", -math.inf) else "no")
+                      for d in gram_rows], header=("material", "map", "procedural", "random-phase", "flat",
+                                                   "beats random-phase"))
+        for scope, d in gram_sum.items():
+            if d["pairs"]:
+                print(f"{scope}: {d['pairs']} pairs, median procedural/floor {_fmt(d['median_procedural'])} "
+                      f"(random-phase {_fmt(d['median_rpn'])}, flat {_fmt(d['median_flat'])}), procedural "
+                      f"beats random-phase on {100 * d['beats_rpn']:.0f} %")
     for name, reason in ev.skipped:
         print(f"not evaluated: {name}: {reason}")
     print(f"{len({r.material for r in ev.rows})} material(s) evaluated, {len(ev.skipped)} not, "
@@ -209,7 +235,9 @@ def add_command(sub) -> None:
                                    "with the procedural output regenerated from material.json alone (other "
                                    "seed), next to three baselines: random phase noise, the input's other half "
                                    "(the floor) and a flat mean material. Metrics: multi-scale patch sliced "
-                                   "Wasserstein, radial power spectrum, histogram (lower is better). Prints the "
+                                   "Wasserstein, radial power spectrum, histogram, pretrained VGG-19 Gram distance "
+                                   "(also in units of the input's own left-to-right distance) (lower is better). "
+                                   "Prints the "
                                    "table and writes <job output>/evaluation/metrics.{csv,json}. Exit 0 all "
                                    "materials scored, 1 some could not be, 2 bad job reference.")
     p.add_argument("job", metavar="JOB", help="job name, manifest, output folder or database file")

@@ -201,7 +201,7 @@ def _add_export(sub) -> None:
                                    "UsdPreviewSurface material (validated against the MaterialX libraries).")
     p.add_argument("material", type=Path, metavar="MATERIAL.json")
     p.add_argument("--size", type=_size, required=True, metavar="WxH", help="output size, e.g. 2048x2048")
-    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale (2 = features twice as big)")
+    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale: 1 = the input maps' pattern size, 2 = features twice as big")
     p.add_argument("--seed", type=int, default=None, help="realisation seed (default: the material's own)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--name", default=None, help="file name prefix (default: the material file's folder name)")

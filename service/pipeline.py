@@ -332,8 +332,19 @@ def _inpainted_target(mdir: Path, parent, node) -> tuple[np.ndarray, dict]:
     return target, {"inpaint": info}
 
 
+def fit_region(tree, parent, node) -> np.ndarray | None:
+    """Where child ``node``'s mask is fitted: inside its parent and outside its earlier siblings (the split is
+    fitted as a binary tree: child i inside what children 0..i-1 left; the graph multiplies child i's PPTBF by
+    that remainder). None when that is the whole image."""
+    region = np.ones_like(node.mask, dtype=bool) if parent.id == tree.id else parent.mask.astype(bool).copy()
+    for sib in parent.children[:parent.children.index(node)]:
+        region &= ~sib.mask.astype(bool)
+    return None if region.all() else region
+
+
 def stage_masks(call: dict, resources: Any = None) -> dict:
-    """Proceduralise one matting child's mask by a PPTBF fit (query + optimise) inside its parent; write JSON."""
+    """Proceduralise one matting child's mask by a PPTBF fit (query + optimise) inside what its parent and its
+    earlier siblings left (:func:`fit_region`); write JSON."""
     from workers import masks
 
     node_id = call["item"]
@@ -343,7 +354,7 @@ def stage_masks(call: dict, resources: Any = None) -> dict:
     parent = _find(tree, tree_info(tree)["parents"][node_id])
     if parent.method == "instances":
         raise InputError(f"tree node {node_id!r} is an instance cluster: it has no PPTBF mask to fit")
-    valid = None if parent.id == tree.id else parent.mask
+    valid = fit_region(tree, parent, node)
     fitter = resources
     if fitter is None:  # run outside an actor (tests, single machine)
         from workers.actors import MaskFitter
@@ -351,7 +362,7 @@ def stage_masks(call: dict, resources: Any = None) -> dict:
         fitter = MaskFitter()
     cfg = _config(getattr(masks, "MaskFitConfig", None), call["material"].get("masks", {}), "masks")
     target, extra = node.mask, {}
-    if valid is not None and cfg.incomplete == "inpaint":
+    if parent.id != tree.id and cfg.incomplete == "inpaint":
         target, extra = _inpainted_target(mdir, parent, node)
         valid = None
     fit = fitter.fit(target, valid=valid, config=cfg, seed=int(call["material"].get("seed", 0)))

@@ -182,7 +182,7 @@ def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -
     proc = {}
     if mat is not None:
         w, h = mat.working_size
-        proc = graph.evaluate(mat, w, h, seed=mat.seed)
+        proc = graph.evaluate(mat, w, h, scale=mat.working_scale, seed=mat.seed)  # the working maps' pattern size
     if not inp and not proc:
         return '<p class="muted">no input or procedural maps yet (load / recompose not done)</p>'
     hr = None
@@ -203,7 +203,8 @@ def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -
         cells.append(f'<img src="{_e(src)}" width="{2 * width}" alt="{tag} render">' if src else "-")
         rows.append(tuple(cells))
     note = (f"<p class='muted'>input: the working-size maps of the load stage; procedural: material.json "
-            f"evaluated at {mat.working_size[0]}x{mat.working_size[1]}, seed {mat.seed}. Heights share the "
+            f"evaluated at {mat.working_size[0]}x{mat.working_size[1]} at the working maps' pattern size, seed "
+            f"{mat.seed}. Heights share the "
             f"input's range.</p>") if mat is not None else "<p class='muted'>no procedural graph yet</p>"
     return note + _table(("",) + tuple(names) + ("render (top | side light)",), rows)
 
@@ -268,7 +269,7 @@ def read_metrics(job_out: Path) -> dict | None:
 
 
 def _metrics_table(rows: list[dict], keys: tuple[str, ...]) -> str:
-    cols = keys + ("swd", "spectrum", "histogram")
+    cols = keys + ("swd", "spectrum", "histogram", "gram")
     return _table(cols, [tuple(_num(r.get(k)) for k in cols) for r in rows])
 
 

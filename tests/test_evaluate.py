@@ -57,6 +57,28 @@ def test_identical_maps_score_near_zero_and_baselines_rank_as_expected(bricks):
         assert rpn.spectrum < 3.0 * half.spectrum, (name, rpn.spectrum, half.spectrum)
 
 
+def test_gram_sees_structure_in_units_of_the_floor(bricks):
+    """The VGG-19 Gram distance loses what random-phase noise loses (bricks): noise of the input is several
+    times the input's own half-to-half distance on albedo and height, the input itself is at 0, and the
+    summary counts the pairs where the procedural maps beat the noise."""
+    from workers.evaluate import gram_ratios, gram_summary
+
+    rows = evaluate_material(bricks, bricks, seed=0, material="bricks", config=EvalConfig(lights=2))
+    table = {d["map"]: d for d in gram_ratios(rows)}
+    assert set(table) == {*MAPS, "render"}
+    for name in ("albedo", "height"):
+        assert table[name]["rpn"] > 1.5, table[name]
+        assert table[name]["flat"] > table[name]["rpn"], table[name]
+        assert table[name]["procedural"] < 1e-3
+    s = gram_summary(rows)
+    assert s["maps"]["pairs"] == 4 and s["render"]["pairs"] == 1
+    assert s["maps"]["beats_rpn"] == 1.0 and s["maps"]["median_procedural"] < 1e-3
+    assert s["maps"]["median_rpn"] > 1.0
+    # a candidate worse than the noise on every map: no pair beaten
+    worse = [type(r)(**{**r.to_dict(), "gram": 1e3}) if r.method == "procedural" else r for r in rows]
+    assert gram_summary(worse)["maps"]["beats_rpn"] == 0.0
+
+
 def test_baselines_protocol_sizes_units_and_determinism(bricks):
     b = baselines(bricks, seed=3)
     w, h = reference_size(bricks)
@@ -166,7 +188,7 @@ def test_evaluate_job_writes_every_row_and_names_the_failures(job_dir, capsys):
     ev = job_dir / "evaluation"
     with open(ev / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert [tuple(r) for r in rows[:1]] == [("material", "map", "method", "swd", "spectrum", "histogram")]
+    assert [tuple(r) for r in rows[:1]] == [("material", "map", "method", "swd", "spectrum", "histogram", "gram")]
     assert {(r["material"], r["map"], r["method"]) for r in rows} == {
         ("bricks", m, k) for m in (*MAPS, "render") for k in METHODS}
     assert all(float(r[m]) >= 0 for r in rows for m in METRICS)

@@ -223,7 +223,8 @@ def test_recovers_perturbed_parameters():
         return np.array([abs(value(mat, k) - value(truth, k)) for k in keys])
 
     # same realisation as the target, so SSIM (beta) sees pixel alignment; blend sigmas stay free too
-    res = optimise(start, target, RecomposeConfig(iterations=80, lr=0.05, beta=1.0, seed=0))
+    # the optimiser's mechanics on a 32 px toy: the weight-free features (VGG-19 pools 32 px down to 8 px)
+    res = optimise(start, target, RecomposeConfig(iterations=80, lr=0.05, beta=1.0, seed=0, features="random"))
     e0, e1 = err(start), err(res.material)
     assert res.loss_after < 0.5 * res.loss_before
     assert e1.mean() < e0.mean() / 5.0, (e0.mean(), e1.mean())
@@ -239,7 +240,7 @@ def test_real_material_loss_decreases(materials_dir, artifacts_dir):
     size = 128
     target = _real_material("castle_brick_broken_06", size)
     proc = _noise_material(target, size)
-    res = optimise(proc, target, RecomposeConfig(iterations=40, lr=0.05, seed=1))
+    res = optimise(proc, target, RecomposeConfig(iterations=40, lr=0.05, seed=1, features="random"))
     assert res.device == "cpu" and len(res.history) == 40
     # measured 1.03 -> 0.80 (x1.29); the bench's 3 leaves at 256 px, 100 steps: x2.4
     assert res.loss_after < res.loss_before / 1.2, (res.loss_before, res.loss_after)

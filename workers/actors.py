@@ -64,9 +64,11 @@ class Recomposer:
     """Builds the procedural graph of one material and optimises it on a fixed torch device.
 
     Graph: a ``noise`` node per leaf and map; per internal tree node, ``pptbf`` masks for all children but the
-    last (fitted by the masks stage), the last child's mask being ``1 - sum(others)`` (complementary masks, no
-    gaps); instance splits get an ``instances`` node over the node's absolute mask and one ``channel`` per
-    cluster. ``workers.recompose.assemble_material`` adds the blends; ``optimise`` fits the filters.
+    last (fitted by the masks stage, child i inside what children 0..i-1 left, as a binary tree of splits):
+    child i's mask is its PPTBF times the remainder ``1 - sum(masks 0..i-1)`` and the last child takes the
+    final remainder, so the masks of a split partition the plane at any size, scale and seed; instance splits
+    get an ``instances`` node over the node's absolute mask and one ``channel`` per cluster.
+    ``workers.recompose.assemble_material`` adds the blends; ``optimise`` fits the filters.
     """
 
     def __init__(self, device: str = "cpu"):
@@ -80,7 +82,8 @@ class Recomposer:
         from workers.recompose import MAP_ORDER, assemble_material
 
         w, h = material.size
-        proc = G.new_material(seed=seed, working_size=(w, h))
+        orig = material.meta.get("original_size")
+        proc = G.new_material(seed=seed, working_size=(w, h), input_size=tuple(orig) if orig else None)
 
         def gid(prefix: str, tree_id: str, suffix: str = "") -> str:
             """Graph node id from a tree id: no dots (edit paths are ``node.param``)."""
@@ -120,18 +123,19 @@ class Recomposer:
                 for i, c in enumerate(node.children):
                     mask_nodes[c.id] = proc.add(gid("mask", c.id), "channel", {"channels": [i]}, input=inst)
             else:
-                fitted = []
-                for c in node.children[:-1]:
+                fitted: list[str] = []
+                remainder: str | None = None
+                for i, c in enumerate(node.children[:-1]):
                     if c.id not in fits:
                         raise KeyError(f"no mask fit for tree node {c.id!r} (masks stage missing?)")
                     fitted.append(MK.add_mask_node(proc, gid("mask", c.id), mask_fit_from_json(fits[c.id]["fit"]),
-                                                   working_width=w))
+                                                   working_width=w, parent=remainder))
                     mask_nodes[c.id] = fitted[-1]
-                last = node.children[-1]
-                src = fitted[0] if len(fitted) == 1 else proc.add(
-                    gid("sum", node.id), "add", {}, **{f"in{i}": f for i, f in enumerate(fitted)})
-                mask_nodes[last.id] = proc.add(gid("mask", last.id), "level", {"a": -1.0, "d": 1.0, "clamp": True},
-                                               input=src)
+                    src = fitted[0] if len(fitted) == 1 else proc.add(
+                        gid("sum", node.id, str(i)), "add", {}, **{f"in{j}": f for j, f in enumerate(fitted)})
+                    remainder = proc.add(gid("rest", node.id, str(i)), "level", {"a": -1.0, "d": 1.0, "clamp": True},
+                                         input=src)
+                mask_nodes[node.children[-1].id] = remainder
             for c in node.children:
                 visit(c, node)
 

@@ -7,11 +7,19 @@ Spec (JSON/TOML dict), every key optional except inside ``children``::
      "scribbles": None,              # matting: scribble image array (see workers.matting) or None = automatic
      "scribbles_source": "s.png",    # optional file name used in error messages
      "spectral_weight": 0.5,         # matting: weight of the spectral PCA-3 features
+     "structure": True,              # root, automatic matting: split the layout's network first (see below)
      "children": {"0": {...}, "1": {"method": "instances"}}}
 
 Matting keys also accepted: k, k_nonlocal, lambda, confidence, seed_smooth. Instance keys: open_close,
 min_side, distance_threshold, outlier_z, crop_size. ``spec=None`` means ``{"method": "matting", "layers": 2}``
 (an automatic two-layer split of the whole material; its leaves are then sub-materials).
+
+Structure first: an automatic (scribble-free) matting split of the root first looks for a layout in the relief
+(height from normals, normal tilt) and then the albedo (workers.structure). When one is found, the root's split
+is that layout: "root.0" = the network (mortar, grout, seams, edges), "root.1" = the cells; with more than 2
+layers (or "auto"), the cells are split again by colour matting (layers - 1, or "auto") as "root.1.*", so
+stains and colour variation become nested splits (with 2 layers they stay in the cells' noise). Children specs
+apply to root.0 / root.1 as usual. Scribbles override it; ``structure = false`` turns it off.
 
 Node ids: "root", "root.0", "root.1", "root.0.1", ... (layer / kind index). A split solves only over its parent's
 pixels. Matting layers that come out empty are dropped (a warning; the other ids keep their index).
@@ -35,7 +43,8 @@ logger = logging.getLogger(__name__)
 
 METHODS = ("matting", "instances", "leaf")
 DEFAULT_SPEC: dict = {"method": "matting", "layers": 2}
-_MATTING_KEYS = {"layers": "layers", "scribbles": None, "scribbles_source": None, "spectral_weight": "spectral_weight",
+_MATTING_KEYS = {"layers": "layers", "scribbles": None, "scribbles_source": None, "structure": None,
+                 "spectral_weight": "spectral_weight",
                  "k": "k", "k_nonlocal": "k_nonlocal", "lambda": "lam", "confidence": "confidence",
                  "seed_smooth": "seed_smooth"}
 _INSTANCE_KEYS = {"open_close": "open_close", "min_side": "min_side", "distance_threshold": "distance_threshold",
@@ -74,6 +83,8 @@ def _check_node(spec: Any, where: str, problems: list[str]) -> None:
         if sc is not None and not (isinstance(sc, np.ndarray) and sc.ndim in (2, 3)):
             problems.append(f"{where}.scribbles: must be an image array (HxW or HxWxC) or None; the service reads "
                             f"the file, got {type(sc).__name__}")
+        if not isinstance(spec.get("structure", True), bool):
+            problems.append(f"{where}.structure: must be true or false, got {spec['structure']!r}")
         src = spec.get("scribbles_source")
         if src is not None and not isinstance(src, str):
             problems.append(f"{where}.scribbles_source: must be a file name string")
@@ -199,16 +210,48 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
             _split(child, sub, fm, seed)
 
 
+def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps, seed: int) -> None:
+    """Root split = the layout's network (root.0) and its cells (root.1); the cells split by colour when more
+    than 2 layers are asked for; children specs apply as usual."""
+    root.method = "matting"
+    root.meta["structure"] = split.describe()
+    root.children = [MaskNode(id="root.0", mask=split.mask.copy()), MaskNode(id="root.1", mask=~split.mask)]
+    layers = spec.get("layers", 2)
+    children = {str(k): v for k, v in (spec.get("children") or {}).items()}
+    if "1" not in children and (layers == "auto" or layers > 2):
+        rest = "auto" if layers == "auto" else int(layers) - 1
+        if rest == "auto" or rest >= 2:
+            children["1"] = {"method": "matting", "layers": rest,
+                             **{k: spec[k] for k in _MATTING_KEYS if k in spec and k not in
+                                ("layers", "scribbles", "scribbles_source", "structure")}}
+    for key in sorted(set(children) - {"0", "1"}):
+        logger.warning("root: spec has children.%s but the structural split made only 0 and 1; ignored", key)
+    for child in root.children:
+        sub = children.get(child.id.rsplit(".", 1)[1])
+        if sub is not None:
+            _split(child, sub, fm, seed)
+
+
 def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode:
     """Decompose a material into a mask tree.
 
     maps: a Material, or a dict of arrays (linear albedo HxWx3; optional height, roughness, normal).
-    spec: see the module docstring (None = automatic two-layer matting at the root). Deterministic from seed.
+    spec: see the module docstring (None = automatic two-layer matting at the root, structure first).
+    Deterministic from seed.
     """
     spec = validate_spec(spec)
     albedo, height, rough = _arrays(maps)
     fm = feature_maps(albedo, height, rough, spectrum_dims=16 if _uses_spectrum(spec) else 0, seed=seed)
     root = root_node(*albedo.shape[:2])
     root.meta["features"] = fm.names
+    if spec.get("method", "matting") == "matting" and spec.get("scribbles") is None and spec.get("structure", True):
+        from .structure import find_structure
+
+        d = maps.maps() if hasattr(maps, "maps") and callable(maps.maps) else maps
+        normal = d.get("normal")
+        split = find_structure(albedo, height, None if normal is None else np.asarray(normal, np.float32))
+        if split is not None:
+            _structure_first(root, spec, split, fm, seed)
+            return root
     _split(root, spec, fm, seed)
     return root

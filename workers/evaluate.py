@@ -16,6 +16,13 @@ Protocol (fair by construction; every candidate is compared against the same ref
   on a plane as wide as the half (``PLANE_WIDTH * (W/2) / W``, so a pixel covers the same area as in a render
   of the whole map), tonemapped to sRGB, metrics averaged over the lights.
 
+* **gram** = the pretrained VGG-19 Gram distance (workers.features: relu1_1..relu4_1, mean relative Frobenius
+  distance) to the reference, the paper's texture statistic; unlike the other metrics it sees structure
+  (bricks, seams) that random-phase noise loses. Maps are shown to the network as a person sees them: albedo in
+  sRGB, normals as (n + 1) / 2, height scaled by the reference's range, roughness / metallic as they are;
+  renders per light, distances averaged. :func:`gram_ratios` divides by the half row (the input's own
+  left-to-right distance): 1.0 = as close as two halves of the input.
+
 Lower is better for every metric; ``ratio to half`` (method / half, geometric mean over rows) is 1 at the floor.
 """
 from __future__ import annotations
@@ -29,7 +36,8 @@ from workers.metrics import flat_mean, random_phase_noise, split_halves, texture
 
 MAP_ORDER = ("albedo", "normal", "roughness", "height", "metallic")
 METHODS = ("procedural", "rpn", "half", "flat")
-METRICS = ("swd", "spectrum", "histogram")
+METRICS = ("swd", "spectrum", "histogram", "gram")
+BASELINES = ("rpn", "flat")
 _UNIT_MAPS = ("albedo", "roughness", "metallic")
 
 
@@ -52,6 +60,7 @@ class MetricRow:
     swd: float
     spectrum: float
     histogram: float
+    gram: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -148,10 +157,55 @@ def _nan_metrics() -> dict[str, float]:
     return {m: float("nan") for m in METRICS}
 
 
+def vgg_image(name: str, a: np.ndarray, height_range: tuple[float, float] | None = None) -> np.ndarray:
+    """A map as the image a person looks at, HxWx(1|3) in [0, 1]: albedo sRGB, normal (n + 1) / 2, height by
+    ``height_range`` (the reference's), the others clipped."""
+    from workers.maps import linear_to_srgb
+
+    a = _hwc(a)
+    if name == "albedo":
+        return np.clip(linear_to_srgb(np.clip(a[..., :3], 0.0, 1.0)), 0.0, 1.0).astype(np.float32)
+    if name == "normal":
+        return np.clip(a[..., :3] * 0.5 + 0.5, 0.0, 1.0).astype(np.float32)
+    if name == "height":
+        lo, hi = height_range if height_range is not None else (float(a.min()), float(a.max()))
+        return np.clip((a[..., :1] - lo) / max(hi - lo, 1e-6), 0.0, 1.0).astype(np.float32)
+    return np.clip(a[..., :1], 0.0, 1.0).astype(np.float32)
+
+
+def vgg_grams(images: np.ndarray) -> list:
+    """VGG-19 Gram matrices of images (N, H, W, C in [0, 1], C = 1 or 3), per layer (N, c, c); no gradients."""
+    import torch
+
+    from workers.features import GramExtractor
+
+    x = torch.from_numpy(np.ascontiguousarray(np.asarray(images, np.float32).transpose(0, 3, 1, 2)))
+    ex = GramExtractor.vgg19(x.shape[1])
+    with torch.no_grad():
+        return ex.grams(x)
+
+
+def gram_distance_images(ref: np.ndarray, cand: np.ndarray) -> float:
+    """Mean over images of the VGG-19 Gram distance of cand[i] to ref[i] (N, H, W, C arrays)."""
+    from workers.features import gram_distance
+
+    return float(gram_distance(vgg_grams(cand), vgg_grams(ref)).mean())
+
+
 def score_views(ref: np.ndarray, cand: np.ndarray, seed: int) -> dict[str, float]:
     """Metrics averaged over the light views (L, H, W, 3)."""
     per = [texture_metrics(r, c, seed=seed + i) for i, (r, c) in enumerate(zip(ref, cand))]
-    return {m: float(np.mean([p[m] for p in per])) for m in METRICS}
+    out = {m: float(np.mean([p[m] for p in per])) for m in METRICS if m != "gram"}
+    out["gram"] = gram_distance_images(ref, cand)
+    return out
+
+
+def score_map(name: str, ref: np.ndarray, cand: np.ndarray, seed: int) -> dict[str, float]:
+    """Metrics of one map: the texture metrics and the VGG-19 Gram distance of the map as an image."""
+    out = dict(texture_metrics(ref, cand, seed=seed))
+    hr = (float(ref.min()), float(ref.max())) if name == "height" else None
+    out["gram"] = gram_distance_images(vgg_image(name, ref, hr)[None], vgg_image(name, cand, hr)[None])
+    return out
 
 
 def evaluate_material(inputs: dict[str, np.ndarray], procedural: dict[str, np.ndarray], seed: int = 0,
@@ -168,7 +222,7 @@ def evaluate_material(inputs: dict[str, np.ndarray], procedural: dict[str, np.nd
     for name in [m for m in MAP_ORDER if m in full]:
         for method in METHODS:
             c = cands[method].get(name)
-            vals = _nan_metrics() if c is None else texture_metrics(ref[name], c, seed=seed)
+            vals = _nan_metrics() if c is None else score_map(name, ref[name], c, seed)
             rows.append(MetricRow(material, name, method, **vals))
     if config.render:
         plane = PLANE_WIDTH * size[0] / full["albedo"].shape[1]
@@ -181,6 +235,36 @@ def evaluate_material(inputs: dict[str, np.ndarray], procedural: dict[str, np.nd
     return rows
 
 
+def gram_ratios(rows: list[MetricRow]) -> list[dict]:
+    """Per (material, map): each method's VGG-19 Gram distance over the half row's (1.0 = the input's own
+    left-to-right distance), e.g. {"material", "map", "procedural", "rpn", "flat"}."""
+    half = {(r.material, r.map): r.gram for r in rows if r.method == "half"}
+    table: dict[tuple[str, str], dict] = {}
+    for r in rows:
+        if r.method == "half" or (r.material, r.map) not in half or math.isnan(r.gram):
+            continue
+        d = table.setdefault((r.material, r.map), {"material": r.material, "map": r.map})
+        d[r.method] = float(r.gram / max(half[(r.material, r.map)], 1e-9))
+    return list(table.values())
+
+
+def gram_summary(rows: list[MetricRow]) -> dict:
+    """Over the (material, map) pairs (maps only; renders reported apart): the median Gram ratio to the floor of
+    the procedural maps and of each baseline, and the share of pairs where procedural beats random-phase."""
+    table = gram_ratios(rows)
+    out: dict = {}
+    for scope, sel in (("maps", [d for d in table if d["map"] != "render"]),
+                       ("render", [d for d in table if d["map"] == "render"])):
+        d: dict = {"pairs": len(sel)}
+        for method in ("procedural", *BASELINES):
+            vals = [t[method] for t in sel if method in t]
+            d[f"median_{method}"] = float(np.median(vals)) if vals else float("nan")
+        both = [t for t in sel if "procedural" in t and "rpn" in t]
+        d["beats_rpn"] = float(np.mean([t["procedural"] < t["rpn"] for t in both])) if both else float("nan")
+        out[scope] = d
+    return out
+
+
 def summarise(rows: list[MetricRow]) -> list[dict]:
     """Per method: mean of each metric over all rows, and the geometric-mean ratio to the 'half' floor."""
     half = {(r.material, r.map): r for r in rows if r.method == "half"}
@@ -191,10 +275,12 @@ def summarise(rows: list[MetricRow]) -> list[dict]:
             continue
         d: dict = {"method": method, "rows": len(mine)}
         for m in METRICS:
-            d[m] = float(np.mean([getattr(r, m) for r in mine]))
+            vals = [getattr(r, m) for r in mine if not math.isnan(getattr(r, m))]
+            d[m] = float(np.mean(vals)) if vals else float("nan")
         for m in METRICS:
             ratios = [(getattr(r, m) + 1e-9) / (getattr(half[(r.material, r.map)], m) + 1e-9)
-                      for r in mine if (r.material, r.map) in half]
+                      for r in mine if (r.material, r.map) in half and not math.isnan(getattr(r, m))
+                      and not math.isnan(getattr(half[(r.material, r.map)], m))]
             d[f"{m}_ratio_to_half"] = float(np.exp(np.mean(np.log(ratios)))) if ratios else float("nan")
         out.append(d)
     return out

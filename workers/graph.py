@@ -2,15 +2,22 @@
 
 File layout (``material.json``)::
 
-    {"format": "proceduralize/1",
+    {"format": "proceduralize/1.1",
      "seed": 1234,                      # default realisation
-     "working_size": [512, 512],        # size (px) the graph was fitted at; scale 1 = this pattern size
+     "working_size": [512, 512],        # size (px) the graph was fitted at (node params are in these pixels)
+     "input_size": [2048, 2048],        # size (px) of the input maps; scale 1 = the input's pattern size
      "maps": [{"name": "albedo", "node": "albedo_out", "colorspace": "srgb"},
               {"name": "roughness", "node": "rough_out"},
               {"name": "height", "node": "height_out"},
               {"name": "normal", "from_height": "height", "strength": 4.0, "convention": "opengl"}],
      "nodes": [{"id": "c0", "type": "constant", "params": {"value": [0.5, 0.4, 0.3]}, "inputs": {}}, ...],
      "meta": {...}}
+
+Scale semantics: ``evaluate(mat, W, H, scale=1)`` draws the pattern at the input's size, so W x H equal to
+``input_size`` reproduces the input's look and any other size extends the surface at that pattern size;
+``scale`` zooms from there. Files without ``input_size`` (format ``proceduralize/1``) keep their meaning:
+scale 1 = the working size's pattern. Inside the graph, nodes see ``EvalContext.px_scale``: output pixels
+per working-size pixel of pattern.
 
 Nodes are evaluated lazily from the map outputs. Arrays inside params are stored compactly with
 :func:`encode_array` (base64 float16/float32/uint8), never pickled, and never hold input pixels.
@@ -31,8 +38,9 @@ from scipy import ndimage
 
 from .errors import GraphError
 
-FORMAT = "proceduralize/1"
-SUPPORTED_FORMATS = (FORMAT,)
+FORMAT = "proceduralize/1.1"   # 1.1 adds "input_size" (scale 1 = the input's pattern size)
+NORMALISE_EPS = 1e-6   # floor of the mask sum a normalised blend divides by
+SUPPORTED_FORMATS = ("proceduralize/1", FORMAT)
 
 
 # ----------------------------------------------------------------------------- arrays
@@ -200,8 +208,10 @@ class BlurNode:
 @register_node
 class BlendNode:
     """Mask blend. Inputs ``mask0, child0, mask1, child1, ...`` give ``sum_i blur(mask_i; sigma_i) * child_i``
-    (params ``sigmas``: per-mask blur in working-size pixels, default 0); inputs ``mask, fg, bg`` give
-    ``m*fg + (1-m)*bg`` with ``m = blur(mask; sigma)``."""
+    (params ``sigmas``: per-mask blur in working-size pixels, default 0); with ``normalise: true`` that sum is
+    divided by ``sum_i blur(mask_i; sigma_i)``, so the blurred masks of a partition keep summing to 1 whatever
+    their sigmas (every pixel is one child's value, or a convex mix across a blurred edge). Inputs
+    ``mask, fg, bg`` give ``m*fg + (1-m)*bg`` with ``m = blur(mask; sigma)``."""
 
     name = "blend"
     inputs = ("*",)
@@ -210,21 +220,26 @@ class BlendNode:
         sig = params.get("sigmas", [])
         if not isinstance(sig, list) or any(not isinstance(s, (int, float)) or s < 0 for s in sig):
             raise GraphError("blend.sigmas must be a list of numbers >= 0")
+        if not isinstance(params.get("normalise", False), bool):
+            raise GraphError("blend.normalise must be true or false")
 
     def evaluate(self, params, inputs, ctx, node_id):
         sig = list(params.get("sigmas", []))
         if "mask" in inputs:
             m = gaussian_blur(_as3(inputs["mask"])[..., :1], float(params.get("sigma", 0.0)) * ctx.px_scale)
             return (m * inputs["fg"] + (1.0 - m) * inputs["bg"]).astype(np.float32)
-        i, out = 0, None
+        i, out, total = 0, None, None
         while f"mask{i}" in inputs:
             s = float(sig[i]) if i < len(sig) else 0.0
             m = gaussian_blur(_as3(inputs[f"mask{i}"])[..., :1], s * ctx.px_scale)
             term = m * inputs[f"child{i}"]
             out = term if out is None else out + term
+            total = m if total is None else total + m
             i += 1
         if out is None:
             raise GraphError(f"blend node {node_id} has no inputs (need mask/fg/bg or mask0/child0...)")
+        if params.get("normalise", False):
+            out = out / np.maximum(total, NORMALISE_EPS)
         return out.astype(np.float32)
 
 
@@ -293,17 +308,36 @@ class ProceduralMaterial:
     seed: int = 0
     working_size: tuple[int, int] = (512, 512)
     meta: dict = field(default_factory=dict)
+    input_size: tuple[int, int] | None = None
+
+    @property
+    def pattern_unit(self) -> float:
+        """Output pixels per working-size pixel of pattern at scale 1: input width / working width (1 when the
+        input size is unknown: files of format proceduralize/1)."""
+        if self.input_size is None:
+            return 1.0
+        return float(self.input_size[0]) / float(self.working_size[0])
+
+    @property
+    def working_scale(self) -> float:
+        """The ``scale`` that draws the pattern as it was at the working size (to compare with working maps)."""
+        return 1.0 / self.pattern_unit
 
     def to_json(self) -> dict:
         """The JSON document (plain dicts/lists, arrays already encoded)."""
-        return {
+        doc = {
             "format": FORMAT,
             "seed": int(self.seed),
             "working_size": [int(self.working_size[0]), int(self.working_size[1])],
+        }
+        if self.input_size is not None:
+            doc["input_size"] = [int(self.input_size[0]), int(self.input_size[1])]
+        doc.update({
             "maps": copy.deepcopy(self.maps),
             "nodes": [copy.deepcopy(n) for n in self.nodes.values()],
             "meta": copy.deepcopy(self.meta),
-        }
+        })
+        return doc
 
     def node(self, node_id: str) -> dict:
         """The node dict with id ``node_id`` (GraphError if absent)."""
@@ -322,9 +356,23 @@ class ProceduralMaterial:
         return node_id
 
 
-def new_material(seed: int = 0, working_size: tuple[int, int] = (512, 512)) -> ProceduralMaterial:
-    """An empty material to which stages add nodes and map outputs."""
-    return ProceduralMaterial(nodes={}, maps=[], seed=seed, working_size=tuple(working_size))
+def new_material(seed: int = 0, working_size: tuple[int, int] = (512, 512),
+                 input_size: tuple[int, int] | None = None) -> ProceduralMaterial:
+    """An empty material to which stages add nodes and map outputs (``input_size``: the input maps' size, which
+    scale 1 reproduces; None = the working size's pattern)."""
+    return ProceduralMaterial(nodes={}, maps=[], seed=seed, working_size=tuple(working_size),
+                              input_size=None if input_size is None else (int(input_size[0]), int(input_size[1])))
+
+
+def _size_field(doc: dict, key: str, source: str) -> tuple[int, int] | None:
+    """An optional [width, height] field of positive integers."""
+    v = doc.get(key)
+    if v is None:
+        return None
+    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) and x > 0
+                                                         for x in v)):
+        raise GraphError(f"{source}: '{key}' must be [width, height] in positive whole pixels, got {v!r}")
+    return int(v[0]), int(v[1])
 
 
 def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
@@ -363,12 +411,16 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
         for port, src in n["inputs"].items():
             if src not in nodes:
                 raise GraphError(f"{source}: node {nid!r} input {port!r} refers to missing node {src!r}")
+    if fmt == "proceduralize/1" and "input_size" in doc:
+        raise GraphError(f"{source}: 'input_size' needs format {FORMAT!r} (format {fmt!r} draws scale 1 at the "
+                         f"working size's pattern)")
     mat = ProceduralMaterial(
         nodes=nodes,
         maps=maps,
         seed=int(doc.get("seed", 0)),
         working_size=tuple(doc.get("working_size", (512, 512))),
         meta=doc.get("meta", {}),
+        input_size=_size_field(doc, "input_size", source),
     )
     names = set()
     for i, m in enumerate(maps):
@@ -458,14 +510,15 @@ def evaluate(
     seed: int | None = None,
     maps: list[str] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Render the material's maps at ``width x height``; ``scale`` scales the pattern, ``seed`` picks a realisation."""
+    """Render the material's maps at ``width x height``; ``scale`` scales the pattern (1 = the input's pattern
+    size, or the working size's for files without ``input_size``), ``seed`` picks a realisation."""
     if isinstance(mat, (str, Path)):
         mat = load(mat)
     elif isinstance(mat, dict):
         mat = from_json(mat)
     if width < 1 or height < 1 or scale <= 0:
         raise GraphError(f"bad evaluation size {width}x{height} or scale {scale}")
-    ctx = EvalContext(width=int(width), height=int(height), scale=float(scale),
+    ctx = EvalContext(width=int(width), height=int(height), scale=float(scale) * mat.pattern_unit,
                       seed=mat.seed if seed is None else int(seed), working_size=tuple(mat.working_size))
     out: dict[str, np.ndarray] = {}
     wanted = None if maps is None else set(maps)

@@ -67,7 +67,8 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
 
     ``leaf_nodes[leaf.id][map_name]`` is the graph node generating that map inside the leaf (e.g. a ``noise``
     node); ``mask_nodes[child.id]`` the graph node (1-channel mask, e.g. ``pptbf`` or ``channel`` of
-    ``instances``) giving that child's mask inside its parent. ``maps`` defaults to the maps every leaf provides
+    ``instances``) giving that child's mask inside its parent; the masks of a split should partition it (the
+    blends are normalised by the sum of the blurred masks). ``maps`` defaults to the maps every leaf provides
     (order albedo, roughness, height, metallic). With a height map, a ``normal`` output ``from_height`` with
     ``height_strength`` (and ``tilt``) is declared. Internal node ``n`` and map ``m`` get id ``{prefix}_{n}_{m}``
     (dots of tree ids become underscores: graph ids cannot hold dots).
@@ -100,7 +101,7 @@ def assemble_material(tree: MaskNode, leaf_nodes: Mapping[str, Mapping[str, str]
             ins[f"mask{i}"] = mask_nodes[child.id]
             ins[f"child{i}"] = build(child, m)
         return material.add(f"{prefix}_{node.id.replace('.', '_')}_{m}", "blend",
-                            {"sigmas": [float(blend_sigma)] * len(node.children)}, **ins)
+                            {"sigmas": [float(blend_sigma)] * len(node.children), "normalise": True}, **ins)
 
     existing = {e["name"] for e in material.maps}
     for m in maps:
@@ -141,7 +142,11 @@ class RecomposeConfig:
     ssim_maps: bool = True               # SSIM also on albedo / roughness / height (pixel-aligned targets)
     weights: dict = field(default_factory=lambda: {"albedo": 1.0, "normal": 1.0, "roughness": 1.0,
                                                    "height": 1.0, "metallic": 1.0, "renders": 1.0})
-    widths: tuple[int, ...] = (16, 32, 32, 64)  # GramExtractor widths of the loss
+    features: str = "vgg19"              # Gram features of the loss: "vgg19" (pretrained, the paper's) | "random"
+    vgg_layers: int = 3                  # VGG-19 Gram layers used: relu1_1.. (3: up to relu3_1; 4: relu4_1)
+    loss_size: int = 128                 # maps and renders area-averaged to this longer side before the Gram
+                                         # and SSIM terms (0: full size); the graph itself runs at full size
+    widths: tuple[int, ...] = (16, 32, 32, 64)  # widths of the "random" features
     feature_seed: int = 0
     seed: int = 0
     device: str = "auto"
@@ -162,7 +167,14 @@ class RecomposeConfig:
         for k in ("widths", "optimise"):
             if k in d:
                 d[k] = tuple(d[k])
-        return cls(**d)
+        cfg = cls(**d)
+        if cfg.features not in ("vgg19", "random"):
+            raise InputError(f"recompose.features must be 'vgg19' or 'random', got {cfg.features!r}")
+        if not 1 <= int(cfg.vgg_layers) <= 4:
+            raise InputError(f"recompose.vgg_layers must be 1..4, got {cfg.vgg_layers!r}")
+        if int(cfg.loss_size) != 0 and int(cfg.loss_size) < 32:
+            raise InputError(f"recompose.loss_size must be 0 (full size) or >= 32, got {cfg.loss_size!r}")
+        return cfg
 
 
 @dataclass
@@ -521,14 +533,18 @@ class TorchGraph:
             m = mask("mask", sig(f"{nid}.sigma", float(p.get("sigma", 0.0))))
             return m * ins["fg"] + (1.0 - m) * ins["bg"]
         stored = list(p.get("sigmas", []))
-        out, i = None, 0
+        out, total, i = None, None, 0
         while f"mask{i}" in ins:
             s = sig(f"{nid}.sigmas.{i}", float(stored[i]) if i < len(stored) else 0.0)
-            term = mask(f"mask{i}", s) * ins[f"child{i}"]
+            m = mask(f"mask{i}", s)
+            term = m * ins[f"child{i}"]
             out = term if out is None else out + term
+            total = m if total is None else total + m
             i += 1
         if out is None:
             raise GraphError(f"blend node {nid} has no inputs")
+        if p.get("normalise", False):
+            out = out / total.clamp_min(G.NORMALISE_EPS)
         return out
 
     def forward(self, vals: Mapping[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
@@ -605,13 +621,48 @@ def _chw(x: torch.Tensor) -> torch.Tensor:
     return x.permute(2, 0, 1)[None] if x.dim() == 3 else x.permute(0, 3, 1, 2)
 
 
+class _Features:
+    """Gram matrices of the loss: the first ``layers`` VGG-19 taps (the network stops after the last one used),
+    or the seeded random extractor."""
+
+    def __init__(self, ex: GramExtractor, layers: int | None = None):
+        self.ex = ex
+        self.layers = layers
+
+    def grams(self, x: torch.Tensor) -> list[torch.Tensor]:
+        if not self.ex.vgg or self.layers is None or self.layers >= len(self.ex.widths):
+            return self.ex.grams(x)
+        taps = self.ex._style_relus if self.ex.normalised else (1, 6, 11, 20)
+        last = taps[self.layers - 1]
+        h, out = self.ex._prepare(x), []
+        for i, layer in enumerate(self.ex.features_seq):
+            h = layer(h)
+            if i in taps:
+                b, c, hh, ww = h.shape
+                f = h.reshape(b, c, hh * ww)
+                out.append(f @ f.transpose(1, 2) / float(hh * ww))
+            if i == last:
+                break
+        return out
+
+
+def _extractors(cfg: RecomposeConfig, device: torch.device) -> tuple[_Features, _Features]:
+    """(3-channel, 1-channel) loss features on ``device``."""
+    if cfg.features == "vgg19":
+        ex3, ex1 = GramExtractor.vgg19(3), GramExtractor.vgg19(1)
+        if device.type != "cpu":   # the shared instances stay on the CPU
+            ex3, ex1 = copy.deepcopy(ex3).to(device), copy.deepcopy(ex1).to(device)
+        return _Features(ex3, cfg.vgg_layers), _Features(ex1, cfg.vgg_layers)
+    return (_Features(GramExtractor(3, seed=cfg.feature_seed, widths=cfg.widths).to(device)),
+            _Features(GramExtractor(1, seed=cfg.feature_seed + 1, widths=cfg.widths).to(device)))
+
+
 class RecomposeLoss:
-    """Gram (+ SSIM) loss against fixed target maps and a pool of target renders."""
+    """Gram (+ SSIM) loss against fixed target maps and a pool of target renders, at ``cfg.loss_size``."""
 
     def __init__(self, target: dict[str, torch.Tensor], cfg: RecomposeConfig, device: torch.device):
         self.cfg, self.device = cfg, device
-        self.ex3 = GramExtractor(3, seed=cfg.feature_seed, widths=cfg.widths).to(device)
-        self.ex1 = GramExtractor(1, seed=cfg.feature_seed + 1, widths=cfg.widths).to(device)
+        self.ex3, self.ex1 = _extractors(cfg, device)
         self.target = target
         self.names = [m for m in ("albedo", "normal", "roughness", "height", "metallic")
                       if m in target and cfg.weights.get(m, 0.0) > 0]
@@ -628,21 +679,29 @@ class RecomposeLoss:
                 self.eval_renders = self._renders(target, self.eval_lights)
                 self.eval_grams = self.ex3.grams(self.eval_renders)
 
-    def _ex(self, m: str) -> GramExtractor:
+    def _ex(self, m: str) -> _Features:
         return self.ex3 if m in ("albedo", "normal") else self.ex1
 
-    @staticmethod
-    def _img(m: str, x: torch.Tensor) -> torch.Tensor:
-        """Map as 1xCxHxW in [0, 1] for the extractor (normals remapped from [-1, 1])."""
-        x = x * 0.5 + 0.5 if m == "normal" else x
-        return _chw(x)
+    def _small(self, x: torch.Tensor) -> torch.Tensor:
+        """BxCxHxW area-averaged so the longer side is at most cfg.loss_size (0: unchanged)."""
+        n = int(self.cfg.loss_size)
+        h, w = x.shape[-2:]
+        if n <= 0 or max(h, w) <= n:
+            return x
+        k = max(h, w) / float(n)
+        return torch.nn.functional.adaptive_avg_pool2d(x, (max(8, round(h / k)), max(8, round(w / k))))
 
-    @staticmethod
-    def _renders(maps: Mapping[str, torch.Tensor], lights: torch.Tensor) -> torch.Tensor:
+    def _img(self, m: str, x: torch.Tensor) -> torch.Tensor:
+        """Map as 1xCxHxW in [0, 1] for the extractor (normals remapped from [-1, 1]), at the loss size."""
+        x = x * 0.5 + 0.5 if m == "normal" else x
+        return self._small(_chw(x))
+
+    def _renders(self, maps: Mapping[str, torch.Tensor], lights: torch.Tensor) -> torch.Tensor:
         rough = maps.get("roughness")
         if rough is None:
             rough = torch.full_like(maps["albedo"][..., :1], 0.5)
-        return _chw(tonemap(render(maps["albedo"], maps["normal"], rough, lights, maps.get("metallic"))))
+        return self._small(_chw(tonemap(render(maps["albedo"], maps["normal"], rough, lights,
+                                                maps.get("metallic")))))
 
     @staticmethod
     def _gram_dist(gx: list[torch.Tensor], gt: list[torch.Tensor]) -> torch.Tensor:

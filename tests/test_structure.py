@@ -1,0 +1,100 @@
+"""Structure-first automatic decomposition: the first split follows the layout in the relief (mortar, seams,
+slate edges), not the colours; stains become nested splits; scribbles override; layout-free materials keep the
+colour matting."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from tests.conftest import real_material_files
+from workers import lattice as L
+from workers.decompose import decompose
+from workers.height import height_to_normal
+from workers.structure import find_structure
+
+N = 192
+
+
+def _wall(seed: int = 0) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves) with large dark stains over bricks
+    and mortar alike: (maps, true mortar, stains)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[:N, :N]
+    row = y // 24
+    xs = (x + (row % 2) * 24) % 48
+    mortar = (y % 24 < 4) | (xs < 4)
+    height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
+    height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
+    stains = ndimage.gaussian_filter(rng.standard_normal((N, N)), 14, mode="wrap")
+    stains = stains > np.quantile(stains, 0.7)
+    albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.45, 0.15, 0.08]))
+    albedo = np.where(stains[..., None], albedo * 0.25, albedo)
+    albedo = albedo + 0.015 * rng.standard_normal(albedo.shape)
+    maps = {"albedo": np.clip(albedo, 0, 1).astype(np.float32), "height": height,
+            "normal": height_to_normal(height, strength=4.0)}
+    return maps, mortar, stains
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_first_split_is_the_mortar_not_the_stains():
+    maps, mortar, stains = _wall()
+    root = decompose(maps, {"layers": 2})
+    assert "structure" in root.meta and root.meta["structure"]["source"].startswith("relief:")
+    net = root.children[0].mask
+    assert _iou(net, mortar) >= 0.8, _iou(net, mortar)
+    per, ang = L.compare_lattices(L.analyse_lattice(mortar), L.analyse_lattice(net))
+    assert per < 0.05 and ang < 3.0
+    assert "structure" not in decompose(maps, {"layers": 2, "structure": False}).meta
+    # more layers: the stains become a nested colour split of the bricks
+    nested = decompose(maps, {"layers": 3})
+    assert [c.id for c in nested.walk()] == ["root", "root.0", "root.1", "root.1.0", "root.1.1"]
+    bricks = nested.children[1]
+    best = max(_iou(c.mask, stains & bricks.mask) for c in bricks.children)
+    assert best >= 0.7, best
+
+
+def test_scribbles_override_and_noise_keeps_colour_matting():
+    maps, mortar, _ = _wall()
+    scrib = np.zeros((N, N, 3), np.uint8)
+    scrib[:, :N // 2][np.ones((N, N // 2), bool) & (np.arange(N)[:, None] % 40 == 10)] = (255, 0, 0)
+    scrib[:, N // 2:][np.ones((N, N - N // 2), bool) & (np.arange(N)[:, None] % 40 == 10)] = (0, 0, 255)
+    root = decompose(maps, {"scribbles": scrib, "spectral_weight": 0.0})
+    assert "structure" not in root.meta
+    rng = np.random.default_rng(3)
+    h = ndimage.gaussian_filter(rng.standard_normal((N, N)), 3, mode="wrap").astype(np.float32)
+    alb = np.repeat(ndimage.gaussian_filter(rng.standard_normal((N, N)), 6, mode="wrap")[..., None], 3, 2)
+    noise = {"albedo": (0.4 + 0.1 * alb).astype(np.float32), "height": h, "normal": height_to_normal(h, 4.0)}
+    assert find_structure(noise["albedo"], noise["height"], noise["normal"]) is None
+
+
+REFERENCES = {"castle_brick_broken_06": "castle_brick_mortar", "metal_plate_02": "metal_plate_seams",
+              "roof_slates_02": "roof_slate_edges"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(REFERENCES))
+def test_real_first_split_has_the_relief_lattice(name, materials_dir):
+    """At 512 px, the first split's mask has the lattice of the height-threshold reference mask of
+    tests/data/structure_masks (made by make.py there) within 10 % in period. IoU with it is measured: >= 0.8 on
+    the bricks; the slates' reference is cut from the normals' tilt and the plate's from a coarser high-pass, and
+    the automatic cut reaches 0.4-0.5 IoU on them (see the issue note)."""
+    from workers.maps import load_material, read_image
+
+    f = real_material_files(name)
+    m = load_material(f["albedo"], f["normal"], f["roughness"], roughness_channel=f["roughness_channel"],
+                      working_size=512, normal_convention="auto" if name == "roof_slates_02" else "opengl")
+    split = find_structure(m.albedo, m.height, m.normal)
+    assert split is not None
+    ref = read_image(Path(__file__).parent / "data" / "structure_masks" / f"{REFERENCES[name]}.png")[..., 0] > 0.5
+    per, ang = L.compare_lattices(L.analyse_lattice(ref), split.lattice)
+    iou = _iou(split.mask, ref)
+    print(f"{name}: {split.source} share {split.share}: period error {per:.3f}, angle {ang:.1f}, IoU {iou:.2f}")
+    assert per <= 0.10 and ang <= 3.0
+    if name == "castle_brick_broken_06":
+        assert iou >= 0.8

@@ -1,0 +1,140 @@
+"""The structural first split of an automatic decomposition: the thin network of a layout (mortar, grout, panel
+seams, slate edges), found in the relief before any colour.
+
+A brick wall's first split is mortar vs bricks, not "dark" vs "light": a colour split puts dark stains with the
+mortar and loses the seams of a metal plate. Candidates are binary masks cut from *structure sources*: the
+relief (height from the normals, high-passed at a fine and a coarse scale, low = a groove; the normals' tilt,
+high = an edge or a step) and, when the relief shows no layout, the albedo's high-passed luminance (dark lines).
+Each source is cut at a few shares of the pixels and the lattice analysis (workers.lattice) scores every cut;
+the cut with a significant 2-D lattice (else rows) whose autocorrelation repeats most (regularity) is the split
+(a one-directional repeat is often a harmonic of the layout: roof_slates_02's fine grooves repeat at half the
+slates' spacing): its white pixels are layer 0 (the network), the rest layer 1. Sources and cuts are analysed at no
+more than ``analysis_size`` px (area-averaged), the chosen cut is made at full size. Materials without a layout
+(rust, sand, plaster) return None and keep the colour matting.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from .lattice import Lattice, analyse_lattice
+
+logger = logging.getLogger(__name__)
+
+_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+@dataclass
+class StructureConfig:
+    """Where and how the structure is looked for."""
+
+    shares: tuple[float, ...] = (0.08, 0.15, 0.25, 0.35)   # shares of the pixels a cut keeps as the network
+    sigmas: tuple[float, ...] = (3.0 / 512, 12.0 / 512)   # high-pass scales, as fractions of the working width
+    analysis_size: int = 512                               # longer side of the lattice analysis (256 px changed
+    #                                                        the kind of thin cuts: the bricks came out as rows)
+    median: int = 3                                        # median filter of a cut (px at full size; 0 = none)
+
+
+@dataclass
+class StructureSplit:
+    """The chosen cut: mask (HxW bool, the network), its source and share, its lattice, every candidate's score."""
+
+    mask: np.ndarray
+    source: str
+    share: float
+    lattice: Lattice
+    candidates: list[dict] = field(default_factory=list)
+
+    def describe(self) -> dict:
+        """JSON-able summary (no pixels)."""
+        return {"source": self.source, "share": self.share, "coverage": float(self.mask.mean()),
+                "lattice": {"kind": self.lattice.kind, "period": self.lattice.period,
+                            "regularity": self.lattice.regularity, "significance": self.lattice.significance},
+                "candidates": self.candidates}
+
+
+def _highpass(x: np.ndarray, sigma: float) -> np.ndarray:
+    return x - ndimage.gaussian_filter(x, sigma, mode="wrap")
+
+
+def structure_sources(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
+                      config: StructureConfig = StructureConfig()) -> dict[str, dict[str, np.ndarray]]:
+    """{"relief": {name: map}, "albedo": {name: map}}: HxW float maps where high = the network."""
+    relief: dict[str, np.ndarray] = {}
+    width = None
+    for a in (height, normal, albedo):
+        if a is not None:
+            width = a.shape[1]
+            break
+    if width is None:
+        return {"relief": {}, "albedo": {}}
+    sig = [max(1.0, s * width) for s in config.sigmas]
+    if height is not None:
+        h = np.asarray(height, np.float32)
+        h = h[..., 0] if h.ndim == 3 else h
+        for s in sig:
+            relief[f"groove{s:.3g}"] = -_highpass(h, s)
+    if normal is not None:
+        n = np.asarray(normal, np.float32)[..., :3]
+        relief["tilt"] = 1.0 - n[..., 2] / np.maximum(np.linalg.norm(n, axis=-1), 1e-6)
+    colour: dict[str, np.ndarray] = {}
+    if albedo is not None:
+        a = np.asarray(albedo, np.float32)
+        lum = a[..., :3] @ _LUMA if a.ndim == 3 and a.shape[2] >= 3 else a.reshape(a.shape[:2])
+        colour[f"dark{sig[-1]:.3g}"] = -_highpass(lum, sig[-1])
+    return {"relief": relief, "albedo": colour}
+
+
+def _cut(src: np.ndarray, share: float, median: int) -> np.ndarray:
+    m = src > np.quantile(src, 1.0 - share)
+    return ndimage.median_filter(m, median, mode="wrap") if median > 1 else m
+
+
+def _small(src: np.ndarray, size: int) -> tuple[np.ndarray, float]:
+    """src area-averaged so its longer side is <= size, and the factor (small / full)."""
+    h, w = src.shape
+    k = min(1.0, size / float(max(h, w)))
+    if k >= 1.0:
+        return src, 1.0
+    return ndimage.zoom(ndimage.uniform_filter(src, max(1, int(round(1 / k))), mode="wrap"), k, order=1), k
+
+
+def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
+                   config: StructureConfig | None = None) -> StructureSplit | None:
+    """The structural first split (see the module doc), or None when neither relief nor albedo has a layout."""
+    cfg = config or StructureConfig()
+    groups = structure_sources(albedo, height, normal, cfg)
+    cands: list[dict] = []
+    for group in ("relief", "albedo"):
+        best = None
+        for name, src in groups[group].items():
+            small, k = _small(src, cfg.analysis_size)
+            med = max(1, int(round(cfg.median * k))) if cfg.median > 1 else 0
+            for share in cfg.shares:
+                m = _cut(small, share, med if med > 1 else 0)
+                if m.all() or not m.any():
+                    continue
+                lat = analyse_lattice(m)
+                cands.append({"group": group, "source": name, "share": share, "kind": lat.kind,
+                              "regularity": round(float(lat.regularity), 4),
+                              "significance": round(float(lat.significance), 3),
+                              "period_full": None if lat.period is None else round(lat.period / k, 2)})
+                rank = (lat.kind == "2d", lat.regularity)
+                if lat.kind != "none" and (best is None or rank > best[0]):
+                    best = (rank, name, share)
+        if best is not None:
+            _, name, share = best
+            mask = _cut(groups[group][name], share, cfg.median)
+            lat = analyse_lattice(mask)
+            if lat.kind == "none":
+                logger.info("structure: %s at %.2f lost its lattice at full size; next source group", name, share)
+                continue
+            logger.info("structure: first split from %s (%s) at share %.2f: %s lattice, period %.1f px",
+                        group, name, share, lat.kind, lat.period or 0.0)
+            return StructureSplit(mask=mask, source=f"{group}:{name}", share=float(share), lattice=lat,
+                                  candidates=cands)
+    logger.info("structure: no layout in the relief or the albedo; colour matting")
+    return None
