@@ -561,28 +561,52 @@ def _add_results(sub) -> None:
     p.set_defaults(handler=_cmd_results)
 
 
+def _artefact_state(path: Path, checksum: str) -> str:
+    """'ok' when the file is there with its recorded checksum, else 'missing' or 'changed'."""
+    from service.store import file_checksum
+
+    if not path.is_file():
+        return "missing"
+    return "ok" if file_checksum(path) == checksum else "changed"
+
+
 def _cmd_results(args) -> int:
+    from service import claims
+
     store, name = _open_job(args.job)
     with store:
         job = store.job(name)
         mats = store.materials(name)
         arts = store.artefacts(name)
         out = store.output_root(name)
+        db = store.path
     docs = []
     for m in mats:
         mine = [a for a in arts if a["material"] == m["name"]]
         graph = next((a["path"] for a in mine if a["stage"] == "output" and a["path"].endswith("material.json")), None)
         maps = sorted({str(Path(a["path"]).parent) for a in mine if a["stage"] == "output" and "/maps/" in a["path"]})
-        docs.append({"name": m["name"], "status": m["status"], "error": m["error"],
+        states = {a["path"]: _artefact_state(out / a["path"], a["checksum"]) for a in mine}
+        bad = sorted(p for p, st in states.items() if st != "ok")
+        status = m["status"]
+        problems = []
+        if bad:  # files replaced or deleted after the job recorded them: the record no longer holds
+            problems.append(f"{len(bad)} of {len(mine)} files changed or missing since the job wrote them "
+                            f"(e.g. {bad[0]}: {states[bad[0]]}); rerun the job to recompute them")
+        owned = claims.check(out / m["output"], name, db) if mine else None
+        if owned and Path(out / m["output"]).is_dir():
+            problems.append(owned)
+        if problems and status == "done":
+            status = "changed"
+        docs.append({"name": m["name"], "status": status, "error": "; ".join(problems) or m["error"],
                      "folder": str(out / m["output"]), "material_json": str(out / graph) if graph else None,
                      "maps": [str(out / p) for p in maps],
-                     "artefacts": [{k: a[k] for k in ("stage", "item", "path", "kind", "checksum", "bytes")}
-                                   for a in mine]})
+                     "artefacts": [{**{k: a[k] for k in ("stage", "item", "path", "kind", "checksum", "bytes")},
+                                    "state": states[a["path"]]} for a in mine]})
     if args.json:
         print(json.dumps({"job": name, "status": job["status"], "output": str(out), "materials": docs}, indent=1))
     else:
         _print_table([(d["name"], d["status"], d["material_json"] or "-", len(d["maps"]), len(d["artefacts"]),
-                       (d["error"] or "")[:100]) for d in docs],
+                       (d["error"] or "")[:160]) for d in docs],
                      header=("material", "status", "material.json", "map sets", "files", "error"))
     return 0 if all(d["status"] == "done" for d in docs) else 1
 

@@ -453,7 +453,10 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
         if key in raw and raw[key] is not None and key.split("_")[0] not in raw:
             probs.add(f"{where}.{key}", f"given but the material has no {key.split('_')[0]} map")
     ws = merged.get("working_size", 512)
-    working = None if ws is None else _size(ws, f"{where}.working_size", probs)
+    if _is_int(ws) and 8 <= ws <= 32768:  # N is the longer side; the aspect ratio is kept at load
+        working = int(ws)
+    else:
+        working = None if ws is None else _size(ws, f"{where}.working_size", probs)
     dec = _decompose(merged.get("decompose", {"mode": "auto"}), f"{where}.decompose", base, probs)
     outs = _outputs(merged.get("outputs", {}), f"{where}.outputs", probs)
     seed = merged.get("seed", 0)

@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import pipeline
+from service import claims, pipeline
 from service.manifest import JobManifest, MaterialSpec
 from service.pipeline import DEPENDS, NOISE_MAPS, STAGES, StageCall
 from service.store import Store
+from workers.errors import InputError
 
 logger = logging.getLogger(__name__)
 
@@ -418,6 +419,12 @@ class Scheduler:
                          disable=not (self.progress and sys.stderr.isatty()))
         try:
             for spec in job.materials:
+                try:  # before anything is written for it: the folder must be this job's
+                    claims.claim(job.material_dir(spec), job.name, self.store.path)
+                except InputError as exc:
+                    m = self.mats[spec.name] = _Material(spec=spec, plan=[])
+                    self._fail_material(m, str(exc))
+                    continue
                 plan, err = self._plan(spec)
                 m = self.mats[spec.name] = _Material(spec=spec, plan=plan)
                 self.store.set_material(job.name, spec.name, "running")

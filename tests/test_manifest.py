@@ -54,7 +54,7 @@ def test_toml_resolves_paths_and_merges_defaults(tmp_path):
     assert brick.maps["albedo"].file == (tmp_path / "maps/brick_diff.jpg").resolve()
     assert brick.maps["roughness"].channel == "G"
     assert brick.normal_convention == "directx"
-    assert brick.working_size == (128, 128) and brick.seed == 7
+    assert brick.working_size == 128 and brick.seed == 7  # the longer side; aspect kept at load
     assert brick.decompose["scribbles"] == str((tmp_path / "maps/brick_scribble.png").resolve())
     assert brick.decompose["scribbles_source"] == "brick_scribble.png"
     assert brick.decompose["children"]["0"]["scribbles"] == str((tmp_path / "maps/mortar.png").resolve())
