@@ -93,7 +93,7 @@ def _write_maps(maps: dict, out: Path, bits: int = 8) -> dict[str, Path]:
     """Write evaluated maps as PNG: albedo sRGB, normal encoded 0..1, grey maps 16-bit."""
     import numpy as np
 
-    from workers.maps import linear_to_srgb, write_image
+    from workers.maps import linear_to_srgb, output_file, write_image
 
     files: dict[str, Path] = {}
     for name, arr in maps.items():
@@ -108,7 +108,7 @@ def _write_maps(maps: dict, out: Path, bits: int = 8) -> dict[str, Path]:
                 logger.warning("map %s spans [%.3g, %.3g]: clipped to [0, 1] in the PNG", name, lo, hi)
         if data.ndim == 3 and data.shape[2] == 2:
             data = np.concatenate([data, np.zeros_like(data[..., :1])], axis=2)
-        files[name] = write_image(out / f"{name}.png", data[..., :4] if data.ndim == 3 else data, bits=b)
+        files[name] = write_image(output_file(out, name, ".png"), data[..., :4] if data.ndim == 3 else data, bits=b)
     return files
 
 

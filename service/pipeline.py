@@ -393,7 +393,7 @@ def stage_recompose(call: dict, resources: Any = None) -> dict:
 
 def _write_maps(maps: dict[str, np.ndarray], out: Path, bits: int) -> list[Path]:
     """Evaluated maps as PNG: albedo sRGB, normal encoded, grey maps 16-bit."""
-    from workers.maps import linear_to_srgb, write_image
+    from workers.maps import linear_to_srgb, output_file, write_image
 
     files = []
     for name, arr in maps.items():
@@ -403,7 +403,7 @@ def _write_maps(maps: dict[str, np.ndarray], out: Path, bits: int) -> list[Path]
             data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
         else:
             data, b = np.clip(arr, 0.0, 1.0), 16
-        files.append(write_image(out / f"{name}.png", data[..., :3] if data.ndim == 3 else data, bits=b))
+        files.append(write_image(output_file(out, name, ".png"), data[..., :3] if data.ndim == 3 else data, bits=b))
     return files
 
 

@@ -105,3 +105,48 @@ def test_results_rechecks_checksums(tmp_path, capsys):
     tile = doc["materials"][0]
     assert tile["status"] == "changed" and "changed or missing" in tile["error"]
     assert [x["state"] for x in tile["artefacts"] if x["path"].endswith("load/maps/albedo.png")] == ["changed"]
+
+
+# ----------------------------------------------------------------------------- 2. writes stay inside --out
+
+
+def small_material(path: Path, **edit) -> Path:
+    """A tiny valid material.json: constant albedo/roughness, a blurred height, normals from the height."""
+    from workers import graph
+
+    m = graph.new_material(seed=3, working_size=(32, 32))
+    m.add("alb", "constant", {"value": [0.5, 0.3, 0.2]})
+    m.add("rough", "constant", {"value": 0.6})
+    m.add("h0", "constant", {"value": 0.5})
+    m.add("height", "blur", {"sigma": 1.0}, input="h0")
+    m.maps = [{"name": "albedo", "node": "alb"}, {"name": "roughness", "node": "rough"},
+              {"name": "height", "node": "height"}, {"name": "normal", "from_height": "height", "strength": 2.0}]
+    doc = m.to_json()
+    doc.update(edit)
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("bad", ["../../escaped", "/tmp/proceduralize_abs_escape", "sub/dir", "..", "a b"])
+def test_map_names_cannot_write_outside_out(tmp_path, capsys, bad):
+    """A shared material.json whose map name is a path is refused (exit 2, the field named); nothing is
+    written anywhere."""
+    doc = json.loads(small_material(tmp_path / "ok.json").read_text())
+    doc["maps"][1]["name"] = bad
+    mat = tmp_path / "evil" / "material.json"
+    mat.parent.mkdir()
+    mat.write_text(json.dumps(doc))
+    out = tmp_path / "a" / "b" / "out"
+    before = set(tmp_path.rglob("*"))
+    assert main(["render", str(mat), "--size", "16x16", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "maps[1].name" in err and str(mat) in err
+    assert set(tmp_path.rglob("*")) == before and not Path("/tmp/proceduralize_abs_escape.png").exists()
+
+
+def test_export_name_cannot_escape(tmp_path, capsys):
+    mat = small_material(tmp_path / "material.json")
+    out = tmp_path / "deep" / "out"
+    assert main(["export", str(mat), "--size", "16x16", "--out", str(out), "--name", "../../x"]) == 2
+    assert "'../../x'" in capsys.readouterr().err
+    assert not (tmp_path / "x_basecolor.png").exists() and not list(tmp_path.rglob("x_*"))

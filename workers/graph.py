@@ -21,6 +21,7 @@ from __future__ import annotations
 import base64
 import copy
 import json
+import re
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,8 @@ from scipy import ndimage
 from .errors import GraphError
 
 FORMAT = "proceduralize/1"
+#: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
+MAP_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 SUPPORTED_FORMATS = (FORMAT,)
 
 
@@ -374,6 +377,11 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     for i, m in enumerate(maps):
         if not isinstance(m, dict) or not isinstance(m.get("name"), str):
             raise GraphError(f"{source}: maps[{i}] needs a string 'name'")
+        if not MAP_NAME.match(m["name"]):  # map names become file names: never a path
+            raise GraphError(f"{source}: maps[{i}].name {m['name']!r} must be 1-32 lower-case letters, digits "
+                             "or '_' starting with a letter (e.g. albedo, normal, roughness, height, metallic)")
+        if m["name"] in names:
+            raise GraphError(f"{source}: maps[{i}].name {m['name']!r} appears twice")
         if "node" in m:
             if m["node"] not in nodes:
                 raise GraphError(f"{source}: map {m['name']!r} refers to missing node {m['node']!r}")

@@ -161,6 +161,17 @@ def inspect_image(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> dic
 
 # ----------------------------------------------------------------------------- writing
 
+_FILE_STEM = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+
+
+def output_file(folder: str | Path, stem: str, suffix: str) -> Path:
+    """``folder / (stem + suffix)`` for a name that comes from a file or a user (a map name, an export prefix):
+    letters, digits, '_', '.', '-', no '..', no separators, so the file always lands directly in ``folder``."""
+    if not isinstance(stem, str) or not _FILE_STEM.match(stem) or ".." in stem:
+        raise InputError(f"file name {stem!r}: must be 1-128 letters, digits, '_', '.', '-' (no path "
+                         f"separators, no '..'); it names a file inside {folder}")
+    return Path(folder) / f"{stem}{suffix}"
+
 
 def write_image(path: str | Path, array: np.ndarray, bits: int | str = 8) -> Path:
     """Write HxW or HxWxC (C<=4) values in [0,1]: PNG 8/16, JPEG 8, TIFF 8/16/half/float, EXR half/float."""
@@ -453,7 +464,7 @@ def save_material(material: Material, folder: str | Path, bits: int | str = 8) -
             data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
         else:
             data, b = arr, hbits if key == "height" else bits
-        written[key] = write_image(out / f"{key}{ext}", data, bits=b)
+        written[key] = write_image(output_file(out, key, ext), data, bits=b)
     info = {"name": material.name, "height_scale": material.height_scale, "size": list(material.size),
             "albedo_colorspace": "srgb", "normal_convention": "opengl", "sources": material.sources,
             "files": {k: p.name for k, p in written.items()}}
