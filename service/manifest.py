@@ -43,7 +43,10 @@ DEFAULT_DATABASE = "proceduralize.db"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 _CHANNEL_RE = re.compile(r"^([RGBA]|[0-9]|[A-Za-z][A-Za-z0-9_.]*)$")
 
-JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database"}
+JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database",
+            "stage_timeout"}
+#: seconds one stage item may run before it is cancelled and its material fails (job.stage_timeout)
+DEFAULT_STAGE_TIMEOUT_S = 3600.0
 MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "metallic_channel",
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
                  "noise", "masks", "recompose", "stages"}
@@ -148,7 +151,7 @@ class JobManifest:
     materials: list[MaterialSpec]
     max_attempts: int = 3
     mask_actors: int | None = None
-    debug: dict = field(default_factory=dict)
+    stage_timeout: float = DEFAULT_STAGE_TIMEOUT_S
     description: str = ""
     pptbf_database: Path | None = None
 
@@ -167,7 +170,7 @@ class JobManifest:
         """JSON-able form (stored in the job row)."""
         return {"name": self.name, "source": str(self.source) if self.source else None, "root": str(self.root),
                 "output": str(self.output), "database": str(self.database), "stages": self.stages,
-                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "debug": self.debug,
+                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "stage_timeout": self.stage_timeout,
                 "description": self.description, "pptbf_database": str(self.pptbf_database or ""),
                 "materials": [m.to_json() for m in self.materials]}
 
@@ -510,8 +513,9 @@ def _config_fields(stage: str) -> set[str] | None:
     return set(c.__dataclass_fields__) if c is not None and hasattr(c, "__dataclass_fields__") else None
 
 
-def _debug(v: Any, root: Path, probs: _Problems) -> dict:
-    """Test hooks: crash_once = {stage, marker} (os._exit once), sleep = {stage, seconds}."""
+def parse_faults(v: Any, root: Path, probs: _Problems) -> dict:
+    """Fault injection for tests, never part of a manifest (the scheduler reads it from the environment
+    variable PROCEDURALIZE_FAULTS): crash_once = {stage, marker} (os._exit once), sleep = {stage, seconds}."""
     if not isinstance(v, dict):
         probs.add("debug", "must be a table")
         return {}
@@ -538,7 +542,7 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
     """Validate a parsed manifest; relative paths resolve against ``root``. Raises ManifestError with all problems."""
     root = Path(root).resolve()
     probs = _Problems()
-    probs.unknown("", set(doc), {"job", "defaults", "materials", "debug"})
+    probs.unknown("", set(doc), {"job", "defaults", "materials"})
     job = doc.get("job")
     if not isinstance(job, dict):
         probs.add("job", "required table with name and output")
@@ -561,6 +565,13 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
         probs.add("job.database", f"must be a file path, got {db_raw!r}")
         db_raw = DEFAULT_DATABASE
     database = (output / Path(db_raw).expanduser()).resolve(strict=False)
+    if not _inside(database, output) or database == output:
+        probs.add("job.database", f"{db_raw!r} is outside the job's output folder {output}; use a file name "
+                                  "relative to it, without '..'")
+    timeout = job.get("stage_timeout", DEFAULT_STAGE_TIMEOUT_S)
+    if not (_is_num(timeout) and 1 <= timeout <= 7 * 86400):
+        probs.add("job.stage_timeout", f"must be a number of seconds from 1 to 604800 (a week), got {timeout!r}")
+        timeout = DEFAULT_STAGE_TIMEOUT_S
     stages = _stage_list(job.get("stages"), "job.stages", probs)
     max_attempts = job.get("max_attempts", 3)
     if not (_is_int(max_attempts) and 1 <= max_attempts <= 20):
@@ -597,10 +608,9 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
         if m.output in outs and outs[m.output] != m.name:
             probs.add(f"materials ({m.name}).output", f"folder {m.output!r} is also used by {outs[m.output]!r}")
         outs[m.output] = m.name
-    debug = _debug(doc.get("debug", {}), root, probs)
     if probs:
         raise ManifestError(list(probs), str(source) if source else None)
     return JobManifest(name=name, source=Path(source) if source else None, root=root, output=output,
                        database=database, stages=stages, materials=materials, max_attempts=int(max_attempts),
-                       mask_actors=mask_actors, debug=debug, description=str(job.get("description", "")),
+                       mask_actors=mask_actors, stage_timeout=float(timeout), description=str(job.get("description", "")),
                        pptbf_database=(root / Path(pdb).expanduser()).resolve(strict=False) if pdb else None)

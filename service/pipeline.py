@@ -10,15 +10,18 @@ returns, so the driver can record them and a rerun can skip them. No Ray and no 
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -36,6 +39,31 @@ class StageUnavailable(RuntimeError):
     """A stage's module is not installed / not written yet."""
 
 
+class StageTimeout(RuntimeError):
+    """A stage item ran longer than the job's ``stage_timeout`` (not retried: it would time out again)."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float | None, what: str) -> Iterator[None]:
+    """Raise StageTimeout in this thread after ``seconds`` of wall time (SIGALRM; main thread only, which is
+    where Ray runs tasks and single-threaded actor calls). A C call that never returns to Python is not
+    interrupted; the timer fires as soon as it does."""
+    if not seconds or threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGALRM"):
+        yield
+        return
+
+    def expire(signum, frame):
+        raise StageTimeout(f"{what} ran longer than {seconds:g} s (job.stage_timeout); cancelled")
+
+    old = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, float(seconds))
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
 @dataclass
 class StageCall:
     """Everything a worker needs for one stage item (JSON-able)."""
@@ -46,6 +74,7 @@ class StageCall:
     stage: str
     item: str = ""
     debug: dict = field(default_factory=dict)
+    timeout: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -496,8 +525,10 @@ def run_stage(call: dict, resources: Any = None) -> dict:
         raise StageUnavailable(f"stage {stage!r} needs module(s) {', '.join(missing)}, which are not installed")
     started = time.time()
     t0 = time.perf_counter()
-    _debug_hooks(call)
-    res = STAGE_FUNCS[stage](call, resources)
+    what = f"stage {stage}" + (f"[{call['item']}]" if call.get("item") else "")
+    with time_limit(call.get("timeout"), what):
+        _debug_hooks(call)
+        res = STAGE_FUNCS[stage](call, resources)
     root = call["root"]
     arts = [artefact(root, Path(p), kind=f"{stage}:{Path(p).suffix.lstrip('.')}") for p in res["files"]]
     return {"artefacts": arts, "info": res.get("info", {}), "worker": f"{socket.gethostname()}:{os.getpid()}",

@@ -18,6 +18,7 @@ mask actors stay off a zero-CPU head node).
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -30,10 +31,12 @@ from service import claims, pipeline
 from service.manifest import JobManifest, MaterialSpec
 from service.pipeline import DEPENDS, NOISE_MAPS, STAGES, StageCall
 from service.store import Store
-from workers.errors import InputError
+from workers.errors import InputError, ManifestError
 
 logger = logging.getLogger(__name__)
 
+#: environment variable with fault-injection hooks for tests (JSON, see parse_faults)
+FAULTS_ENV = "PROCEDURALIZE_FAULTS"
 #: custom Ray resource that pins mask-fitting actors to the CPU worker group when a cluster advertises it
 MASK_RESOURCE = "mask_fitter"
 
@@ -89,6 +92,30 @@ def _retryable_errors() -> tuple[type, ...]:
     return tuple(getattr(rex, n) for n in names if hasattr(rex, n))
 
 
+def parse_faults(doc: dict, where: str = "faults") -> dict:
+    """Validated fault-injection hooks (tests only): {crash_once: {stage, marker, material}, sleep: {stage,
+    seconds, material}}."""
+    from service.manifest import _Problems, parse_faults as parse
+
+    probs = _Problems()
+    out = parse(doc, Path.cwd(), probs)
+    if probs:
+        raise ManifestError(list(probs), where)
+    return out
+
+
+def faults_from_env() -> dict:
+    """Fault hooks from the environment variable PROCEDURALIZE_FAULTS (JSON); a manifest cannot carry them."""
+    raw = os.environ.get(FAULTS_ENV)
+    if not raw:
+        return {}
+    try:
+        doc = json.loads(raw)
+    except ValueError as exc:
+        raise ManifestError(f"not valid JSON ({exc})", FAULTS_ENV) from None
+    return parse_faults(doc, FAULTS_ENV)
+
+
 def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     """Connect to ``address`` or start a local Ray; returns True when this call started/connected it."""
     import ray
@@ -142,10 +169,11 @@ class Scheduler:
     """Drives one job to completion on the connected Ray cluster."""
 
     def __init__(self, manifest: JobManifest, store: Store | None = None, progress: bool = True,
-                 mask_database: str | None = None):
+                 mask_database: str | None = None, faults: dict | None = None):
         import ray
 
         self.manifest = manifest
+        self.faults = parse_faults(faults) if faults is not None else faults_from_env()
         self.store = store or Store(manifest.database)
         self._own_store = store is None
         self.progress = progress
@@ -212,7 +240,7 @@ class Scheduler:
 
     def _call(self, m: _Material, stage: str, item: str) -> dict:
         return StageCall(job=self.manifest.name, root=str(self.manifest.output), material=m.spec.to_json(),
-                         stage=stage, item=item, debug=self.manifest.debug).to_dict()
+                         stage=stage, item=item, debug=self.faults, timeout=self.manifest.stage_timeout).to_dict()
 
     def _new_actor(self, kind: str) -> Any:
         """One stage actor: 'masks' (CPU, PPTBF index) or 'recompose' (a GPU when the cluster has them)."""

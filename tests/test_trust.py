@@ -150,3 +150,51 @@ def test_export_name_cannot_escape(tmp_path, capsys):
     assert main(["export", str(mat), "--size", "16x16", "--out", str(out), "--name", "../../x"]) == 2
     assert "'../../x'" in capsys.readouterr().err
     assert not (tmp_path / "x_basecolor.png").exists() and not list(tmp_path.rglob("x_*"))
+
+
+# ----------------------------------------------------------------------------- 4. manifests: confined, no hooks
+
+
+@pytest.mark.parametrize("db", ["../../x.db", "/tmp/proceduralize_abs.db", "..", "."])
+def test_manifest_database_stays_in_the_output_folder(tmp_path, capsys, db):
+    m = manifest(tmp_path / "m.json", "j", "out", [{"name": "t", "albedo": "a.png"}], database=db)
+    assert main(["run", str(m)]) == 2
+    assert "job.database" in capsys.readouterr().err
+    assert not (tmp_path.parent / "x.db").exists() and not Path("/tmp/proceduralize_abs.db").exists()
+
+
+def test_manifest_cannot_carry_fault_hooks(tmp_path, capsys):
+    """[debug] used to create any file it named and kill a worker; a manifest can no longer name it."""
+    doc = json.loads(manifest(tmp_path / "m.json", "j", "out", [{"name": "t", "albedo": "a.png"}]).read_text())
+    doc["debug"] = {"crash_once": {"stage": "load", "marker": str(tmp_path / "pwned")}, "sleep": {
+        "stage": "load", "seconds": 1e9}}
+    (tmp_path / "m.json").write_text(json.dumps(doc))
+    assert main(["run", str(tmp_path / "m.json")]) == 2
+    assert "debug: unknown key" in capsys.readouterr().err and not (tmp_path / "pwned").exists()
+
+
+@pytest.mark.parametrize("bad", [0, -1, "long", 1e12, True])
+def test_stage_timeout_is_validated(tmp_path, capsys, bad):
+    m = manifest(tmp_path / "m.json", "j", "out", [{"name": "t", "albedo": "a.png"}], stage_timeout=bad)
+    assert main(["run", str(m)]) == 2
+    assert "job.stage_timeout" in capsys.readouterr().err
+
+
+@pytest.mark.ray
+def test_a_hanging_stage_times_out_and_the_batch_goes_on(tmp_path):
+    """A stage that sleeps 1e9 s (injected from the environment, as tests do) is cancelled after
+    job.stage_timeout; its material fails with a StageTimeout naming the field, the other finishes."""
+    m = manifest(tmp_path / "m.json", "hang", "out", [{"name": "stuck", **synthetic_maps(tmp_path / "a", 1)},
+                                                      {"name": "fine", **synthetic_maps(tmp_path / "b", 2)}],
+                 stage_timeout=3)
+    env = {**ENV, "PROCEDURALIZE_FAULTS": json.dumps({"sleep": {"stage": "decompose", "seconds": 1e9,
+                                                                "material": "stuck"}})}
+    t0 = __import__("time").perf_counter()
+    r = subprocess.run([sys.executable, "-m", "service.cli", "run", str(m), "--quiet", "--num-cpus", "2"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert __import__("time").perf_counter() - t0 < 120
+    res = json.loads(cli("results", str(m), "--json").stdout)
+    st = {x["name"]: x for x in res["materials"]}
+    assert st["fine"]["status"] == "done" and st["stuck"]["status"] == "failed"
+    assert "StageTimeout" in st["stuck"]["error"] and "job.stage_timeout" in st["stuck"]["error"]
