@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 
 #: environment variable with fault-injection hooks for tests (JSON, see parse_faults)
 FAULTS_ENV = "PROCEDURALIZE_FAULTS"
+#: the address every listener of a local Ray binds to: nothing of a local run is reachable from the network
+LOCAL_IP = "127.0.0.1"
 #: custom Ray resource that pins mask-fitting actors to the CPU worker group when a cluster advertises it
 MASK_RESOURCE = "mask_fitter"
 
@@ -117,7 +119,8 @@ def faults_from_env() -> dict:
 
 
 def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
-    """Connect to ``address`` or start a local Ray; returns True when this call started/connected it."""
+    """Connect to ``address`` or start a new local Ray bound to loopback; True when this call started/connected
+    it."""
     import ray
 
     if ray.is_initialized():
@@ -126,8 +129,10 @@ def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "WARNING"}
     if address:
         kw["address"] = address
-    elif num_cpus:
-        kw["num_cpus"] = int(num_cpus)
+    else:  # a fresh local instance (never someone's `ray start` found on this host), reachable from here only
+        kw.update(address="local", _node_ip_address=LOCAL_IP, dashboard_host=LOCAL_IP)
+        if num_cpus:
+            kw["num_cpus"] = int(num_cpus)
     ray.init(**kw)
     return True
 

@@ -41,7 +41,7 @@ def synthetic_maps(folder: Path, seed: int, w: int = 48, h: int = 48, normal: bo
 def manifest(path: Path, job: str, output: str, materials: list[dict], stages=("load", "decompose"),
              **job_keys) -> Path:
     """A JSON manifest file with small fast defaults."""
-    doc = {"job": {"name": job, "output": output, "stages": list(stages), **job_keys},
+    doc = {"job": {"name": job, "output": output, **({"stages": list(stages)} if stages else {}), **job_keys},
            "defaults": {"working_size": 32, "decompose": {"mode": "none"}, "outputs": {"sizes": [32]}},
            "materials": materials}
     path.write_text(json.dumps(doc), encoding="utf-8")
@@ -198,3 +198,46 @@ def test_a_hanging_stage_times_out_and_the_batch_goes_on(tmp_path):
     st = {x["name"]: x for x in res["materials"]}
     assert st["fine"]["status"] == "done" and st["stuck"]["status"] == "failed"
     assert "StageTimeout" in st["stuck"]["error"] and "job.stage_timeout" in st["stuck"]["error"]
+
+
+# ----------------------------------------------------------------------------- 6, 7. odd materials, aspect
+
+
+def _flat(folder: Path, w: int, h: int) -> dict:
+    folder.mkdir(parents=True, exist_ok=True)
+    n = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (h, w, 3)).copy()
+    return {"albedo": str(write_image(folder / "a.png", np.full((h, w, 3), 0.5, np.float32))),
+            "normal": str(write_image(folder / "n.png", n)),
+            "roughness": str(write_image(folder / "r.png", np.full((h, w), 0.4, np.float32)))}
+
+
+@pytest.mark.ray
+def test_flat_tiny_albedo_only_and_long_materials_go_through(tmp_path):
+    """The whole pipeline on a flat uniform material, 1x1 maps (at working_size 16), an albedo-only material
+    and a 1024x16 strip: all finish (they used to fail at recompose with IndexError, at output because the
+    preview needed normals, or were squashed square). 1x1 maps without a working size are refused at load
+    naming the file and the fix."""
+    rng = np.random.default_rng(5)
+    (tmp_path / "alb").mkdir()
+    strip = rng.random((16, 1024, 3)).astype(np.float32)
+    mats = [{"name": "flat", **_flat(tmp_path / "flat", 32, 32)},
+            {"name": "one_px", **_flat(tmp_path / "one", 1, 1), "working_size": 16},
+            {"name": "albedo_only", "albedo": str(write_image(tmp_path / "alb/a.png",
+                                                               rng.random((32, 32, 3)).astype(np.float32)))},
+            {"name": "strip", "albedo": str(write_image(tmp_path / "alb/strip.png", strip)), "working_size": 64,
+             "decompose": {"mode": "none"}},
+            {"name": "one_px_native", **_flat(tmp_path / "one2", 1, 1), "working_size": None}]
+    m = manifest(tmp_path / "m.json", "odd", "out", mats, stages=None)
+    doc = json.loads(m.read_text())
+    doc["defaults"].update(decompose={"mode": "auto"}, recompose={"iterations": 2},
+                           masks={"max_evals": 8, "rounds": 1})
+    m.write_text(json.dumps(doc))
+    r = cli("run", str(m), "--quiet", "--num-cpus", "2", timeout=900)
+    res = {x["name"]: x for x in json.loads(cli("results", str(m), "--json").stdout)["materials"]}
+    assert {k: v["status"] for k, v in res.items()} == {"flat": "done", "one_px": "done", "albedo_only": "done",
+                                                        "strip": "done", "one_px_native": "failed"}, r.stdout
+    err = res["one_px_native"]["error"]
+    assert "one2/a.png" in err and "1x1" in err and "working_size" in err
+    info = json.loads((tmp_path / "out/strip/load/material.json").read_text())
+    assert info["size"] == [64, 8]  # the longer side is 64, the 128:1 aspect kept down to the 8 px minimum
+    assert any("preview.png" in a["path"] for a in res["albedo_only"]["artefacts"])

@@ -53,6 +53,8 @@ class Material:
 # ----------------------------------------------------------------------------- reading
 
 DEFAULT_MAX_PIXELS = 64 * 1024 * 1024
+#: the smallest side the stages work at (filters, spectra and matting need a few pixels)
+MIN_WORKING_SIDE = 8
 _CHANNEL_LETTERS = {"R": 0, "G": 1, "B": 2, "A": 3}
 _BITS = {"uint8": 8, "int8": 8, "uint16": 16, "int16": 16, "half": 16, "uint32": 32, "int32": 32,
          "float": 32, "double": 64}
@@ -344,12 +346,17 @@ def normalize_vectors(n: np.ndarray) -> np.ndarray:
 def _target_size(working_size: int | tuple[int, int] | None, w: int, h: int) -> tuple[int, int]:
     """(w, h) to process at: an int sets the longer side (aspect kept); a pair is used as is."""
     if working_size is None:
+        if min(w, h) < MIN_WORKING_SIDE:
+            raise InputError(f"the maps are {w}x{h} pixels; the pipeline needs at least {MIN_WORKING_SIDE} on each "
+                             "side: set working_size to process them at a larger size")
         return w, h
     if isinstance(working_size, (int, np.integer)):
         n = int(working_size)
-        if n < 8:
-            raise InputError(f"working_size must be >= 8, got {n}")
-        return (n, max(1, round(h * n / w))) if w >= h else (max(1, round(w * n / h)), n)
+        if n < MIN_WORKING_SIDE:
+            raise InputError(f"working_size must be >= {MIN_WORKING_SIDE}, got {n}")
+        # the longer side is n, the aspect ratio kept (the shorter side at least MIN_WORKING_SIDE)
+        short = lambda a, b: max(MIN_WORKING_SIDE, round(a * n / b))  # noqa: E731
+        return (n, short(h, w)) if w >= h else (short(w, h), n)
     tw, th = (int(v) for v in working_size)
     if tw < 8 or th < 8:
         raise InputError(f"working_size must be >= 8x8, got {tw}x{th}")
@@ -403,7 +410,10 @@ def load_material(
             raise InputError(f"{s}: {key} map is {a.shape[1]}x{a.shape[0]} but the albedo {s0} is "
                              f"{a0.shape[1]}x{a0.shape[0]}; all maps must have the same size")
     h0, w0 = a0.shape[:2]
-    tw, th = _target_size(working_size, w0, h0)
+    try:
+        tw, th = _target_size(working_size, w0, h0)
+    except InputError as exc:
+        raise InputError(f"{s0}: {exc}") from None
 
     def fit(a: np.ndarray) -> np.ndarray:
         return resize_image(a, tw, th) if (tw, th) != (w0, h0) else a
