@@ -75,6 +75,7 @@ class StageCall:
     item: str = ""
     debug: dict = field(default_factory=dict)
     timeout: float | None = None
+    memory_budget: int | None = None   # bytes; None: the worker's default (half its machine's memory)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -247,16 +248,27 @@ def stage_load(call: dict, resources: Any = None) -> dict:
     """Read and validate the maps, write them at working size (npz for the next stages, PNG for people)."""
     from workers.maps import load_material, save_material
 
+    from workers import budget
+    from workers.maps import image_header, working_size_for
+
     m = call["material"]
     maps = m["maps"]
     ch = {k: maps[k].get("channel") for k in maps}
     ws = m.get("working_size")
+    ws = tuple(ws) if isinstance(ws, list) else ws
+    sizes = [image_header(maps[k]["file"]) for k in maps]  # headers only: refuse before decoding anything
+    w0, h0 = sizes[0][:2]
+    tw, th = working_size_for(ws, w0, h0)
+    limit = budget.budget(call.get("memory_budget"))
+    budget.check(f"loading {maps['albedo']['file']} ({w0}x{h0}) at working size {tw}x{th}",
+                 budget.load_bytes(sizes, (tw, th)), limit)
+    budget.check(f"fitting material {m['name']!r} at working size {tw}x{th}", budget.fit_bytes(tw, th), limit)
     mat = load_material(
         maps["albedo"]["file"], *(maps[k]["file"] if k in maps else None for k in
                                   ("normal", "roughness", "height", "metallic")),
         roughness_channel=ch.get("roughness"), metallic_channel=ch.get("metallic"),
         albedo_colorspace=m.get("albedo_colorspace", "srgb"), normal_convention=m.get("normal_convention", "opengl"),
-        working_size=tuple(ws) if isinstance(ws, list) else ws, name=m["name"])
+        working_size=ws, name=m["name"])
     out = material_dir(call) / "load"
     arrays = {k: v.astype(np.float32) for k, v in mat.maps().items()}
     files = [write_npz(out / "maps.npz", arrays)]
@@ -478,6 +490,10 @@ def stage_output(call: dict, resources: Any = None) -> dict:
     files = [graph.save(proc, mdir / "material.json")] if tag == output_renders(m)[0] else []
     outs = m.get("outputs", {})
     w, h, seed, scale = _parse_render(tag)
+    from workers import budget
+
+    budget.check(f"rendering {m['name']!r} at {w}x{h}", budget.render_bytes(len(proc.nodes), w, h),
+                 budget.budget(call.get("memory_budget")))
     t0 = time.perf_counter()
     maps = graph.evaluate(proc, w, h, scale=scale, seed=seed)
     folder = mdir / "maps" / tag

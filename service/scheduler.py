@@ -90,7 +90,8 @@ def _retryable_errors() -> tuple[type, ...]:
     import ray.exceptions as rex
 
     names = ("WorkerCrashedError", "RayActorError", "ActorDiedError", "ActorUnavailableError", "ObjectLostError",
-             "OwnerDiedError", "NodeDiedError", "LocalRayletDiedError", "OutOfMemoryError", "TaskUnschedulableError")
+             "OwnerDiedError", "NodeDiedError", "LocalRayletDiedError", "TaskUnschedulableError")
+    # OutOfMemoryError is not among them: the same item on the same inputs would run out of memory again
     return tuple(getattr(rex, n) for n in names if hasattr(rex, n))
 
 
@@ -245,7 +246,8 @@ class Scheduler:
 
     def _call(self, m: _Material, stage: str, item: str) -> dict:
         return StageCall(job=self.manifest.name, root=str(self.manifest.output), material=m.spec.to_json(),
-                         stage=stage, item=item, debug=self.faults, timeout=self.manifest.stage_timeout).to_dict()
+                         stage=stage, item=item, debug=self.faults, timeout=self.manifest.stage_timeout,
+                         memory_budget=self.manifest.memory_budget).to_dict()
 
     def _new_actor(self, kind: str) -> Any:
         """One stage actor: 'masks' (CPU, PPTBF index) or 'recompose' (a GPU when the cluster has them)."""

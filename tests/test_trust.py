@@ -241,3 +241,181 @@ def test_flat_tiny_albedo_only_and_long_materials_go_through(tmp_path):
     info = json.loads((tmp_path / "out/strip/load/material.json").read_text())
     assert info["size"] == [64, 8]  # the longer side is 64, the 128:1 aspect kept down to the 8 px minimum
     assert any("preview.png" in a["path"] for a in res["albedo_only"]["artefacts"])
+
+
+# ----------------------------------------------------------------------------- 3. memory budget
+
+
+def _peak_rss_mb(*args: str) -> tuple[int, float, str]:
+    """Exit code, peak RSS (MB, from getrusage of the child) and stderr of one CLI run."""
+    code = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+            "print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024); "
+            "print(r.stderr, file=sys.stderr)")
+    r = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "service.cli", *args], env=ENV,
+                       capture_output=True, text=True, timeout=120)
+    rc, rss = r.stdout.split()
+    return int(rc), float(rss), r.stderr
+
+
+def test_render_over_the_memory_budget_is_refused_before_allocating(tmp_path):
+    """32768x32768 used to ask for 8 GiB at once: now refused (exit 2, the estimate and the budget named)
+    with the peak RSS of the whole process far below what the render would need."""
+    mat = small_material(tmp_path / "m.json")
+    rc, rss, err = _peak_rss_mb("render", str(mat), "--size", "32768x32768", "--out", str(tmp_path / "o"),
+                                "--memory-budget", "2G")
+    assert rc == 2 and "memory budget of 2.00 GiB" in err and "32768x32768" in err
+    assert rss < 400, rss  # the imports alone; the render would need > 100 GiB
+    rc, _, err = _peak_rss_mb("export", str(mat), "--size", "8192x8192", "--out", str(tmp_path / "x"),
+                              "--memory-budget", "256M")
+    assert rc == 2 and "memory budget" in err
+    assert main(["render", str(mat), "--size", "64", "--out", str(tmp_path / "ok"), "--memory-budget", "1G"]) == 0
+
+
+@pytest.mark.parametrize("scale", ["1e9", "inf", "nan", "0", "-1", "1e-9"])
+def test_render_scale_is_bounded(tmp_path, scale):
+    assert main(["render", str(small_material(tmp_path / "m.json")), "--size", "64", "--scale", scale,
+                 "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_compressed_arrays_are_bounded_before_inflating():
+    """A 1 MB material.json whose array inflated to 805 MB took render to 5 GB: the declared size is checked
+    first, and inflation stops at the declared size."""
+    import base64
+    import resource
+    import zlib
+
+    from workers.errors import GraphError
+    from workers.graph import decode_array, encode_array
+
+    raw = zlib.compress(b"\0" * (805 * 2**20), 9)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(GraphError, match="more than the 16 MiB"):
+        decode_array({"__array__": True, "dtype": "float32", "shape": [805 * 2**18],
+                      "data": base64.b64encode(raw).decode()})
+    with pytest.raises(GraphError, match="does not match its declared shape"):  # the shape lies
+        decode_array({"__array__": True, "dtype": "float32", "shape": [16],
+                      "data": base64.b64encode(raw).decode()})
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200 * 1024  # KB: no 805 MB buffer
+    assert np.array_equal(decode_array(encode_array(np.arange(6.0).reshape(2, 3), "float32")),
+                          np.arange(6.0).reshape(2, 3))
+
+
+def test_manifest_memory_budget_refuses_at_validation(tmp_path, capsys):
+    m = manifest(tmp_path / "m.json", "big", "out", [{"name": "t", "albedo": "a.png",
+                                                      "outputs": {"sizes": [[16384, 16384]]}}],
+                 memory_budget="1G")
+    assert main(["run", str(m)]) == 2
+    assert "outputs.sizes: 16384x16384" in capsys.readouterr().err
+    m = manifest(tmp_path / "m.json", "big", "out", [{"name": "t", "albedo": "a.png"}], memory_budget="lots")
+    assert main(["run", str(m)]) == 2
+    assert "job.memory_budget" in capsys.readouterr().err
+
+
+@pytest.mark.ray
+def test_load_over_the_budget_fails_its_material_only(tmp_path):
+    """working_size = 32768 used to allocate 12 GiB at load: refused from the image headers, that material
+    only, and not retried."""
+    m = manifest(tmp_path / "m.json", "mem", "out", [{"name": "huge", **synthetic_maps(tmp_path / "a", 1),
+                                                      "working_size": 32768},
+                                                     {"name": "fine", **synthetic_maps(tmp_path / "b", 2)}],
+                 stages=("load",), memory_budget="2G")
+    r = cli("run", str(m), "--quiet", "--num-cpus", "1")
+    assert r.returncode == 1
+    res = {x["name"]: x for x in json.loads(cli("results", str(m), "--json").stdout)["materials"]}
+    assert res["fine"]["status"] == "done" and res["huge"]["status"] == "failed"
+    assert "MemoryBudgetError" in res["huge"]["error"] and "32768x32768" in res["huge"]["error"]
+    st = json.loads(cli("status", str(m), "--json").stdout)
+    assert [s["attempts"] for s in st["stages"] if s["material"] == "huge"] == [1]
+
+
+# ----------------------------------------------------------------------------- 8. render/edit/export inputs
+
+
+@pytest.mark.parametrize("label,args_fn,field", [
+    ("nan sigma", lambda p, o: ["render", str(_variant(p, "height", sigma=float("nan"))), "--size", "16", "--out", o],
+     "blur.sigma"),
+    ("huge sigma", lambda p, o: ["render", str(_variant(p, "height", sigma=1e300)), "--size", "16", "--out", o],
+     "blur.sigma"),
+    ("out is a file", lambda p, o: ["render", str(small_material(p / "m.json")), "--size", "16", "--out",
+                                    str(p / "m.json")], "--out"),
+    ("export out is a file", lambda p, o: ["export", str(small_material(p / "m.json")), "--size", "16", "--out",
+                                           str(p / "m.json")], "--out"),
+    ("edit 1e9 sigma", lambda p, o: ["edit", str(small_material(p / "m.json")), "--set", "height.sigma=1e9"],
+     "height.sigma"),
+    ("edit NaN", lambda p, o: ["edit", str(small_material(p / "m.json")), "--set", "height.sigma=NaN"],
+     "height.sigma"),
+    ("edit seed inf", lambda p, o: ["edit", str(small_material(p / "m.json")), "--set", "seed=1e400"], "seed"),
+    ("edit out unwritable", lambda p, o: ["edit", str(small_material(p / "m.json")), "--set", "height.sigma=2",
+                                          "--out", "/proc/nope/x.json"], "/proc/nope/x.json"),
+    ("seed string in file", lambda p, o: ["render", str(_variant(p, None, seed="x")), "--size", "16", "--out", o],
+     "seed"),
+    ("strength string", lambda p, o: ["render", str(_variant(p, None, strength="x")), "--size", "16", "--out", o],
+     "maps[3].strength"),
+    ("constant string", lambda p, o: ["render", str(_variant(p, "alb", value="red")), "--size", "16", "--out", o],
+     "node 'alb'"),
+])
+def test_bad_render_edit_export_inputs_exit_2_naming_the_field(tmp_path, capsys, label, args_fn, field):
+    before = (tmp_path / "m.json").read_bytes() if (tmp_path / "m.json").exists() else None
+    assert main(args_fn(tmp_path, str(tmp_path / "o"))) == 2, label
+    err = capsys.readouterr().err
+    assert field in err, err
+    if before is None and (tmp_path / "m.json").exists() and label.startswith("edit"):
+        assert json.loads((tmp_path / "m.json").read_text())["nodes"][3]["params"]["sigma"] == 1.0
+
+
+def test_non_utf8_material_file_exit_2(tmp_path, capsys):
+    bad = tmp_path / "latin.json"
+    bad.write_bytes('{"format": "caf\xe9"}'.encode("latin-1"))
+    for cmd in (["render", str(bad), "--size", "8", "--out", str(tmp_path / "o")], ["edit", str(bad), "--list"],
+                ["export", str(bad), "--size", "8", "--out", str(tmp_path / "o")]):
+        assert main(cmd) == 2
+        assert "latin.json: not a UTF-8 text file" in capsys.readouterr().err
+
+
+def _variant(folder: Path, node: str | None, **params) -> Path:
+    doc = json.loads(small_material(folder / "base.json").read_text())
+    if node is None:
+        if "strength" in params:
+            doc["maps"][3]["strength"] = params["strength"]
+        else:
+            doc.update(params)
+    else:
+        next(n for n in doc["nodes"] if n["id"] == node)["params"].update(params)
+    p = folder / "variant.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def test_read_commands_never_write(tmp_path, capsys):
+    """status on a 0-byte database used to write a schema into it."""
+    z = tmp_path / "zero.db"
+    z.write_bytes(b"")
+    for cmd in ("status", "results", "report", "evaluate"):
+        assert main([cmd, str(z)]) == 2
+        assert "zero.db" in capsys.readouterr().err
+    assert z.stat().st_size == 0 and sorted(p.name for p in tmp_path.iterdir()) == ["zero.db"]
+
+
+def test_corrupt_database_and_missing_pptbf_db_refused_before_ray(tmp_path, capsys):
+    m = manifest(tmp_path / "m.json", "c", "out", [{"name": "t", "albedo": "a.png"}])
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out/proceduralize.db").write_bytes(b"SQLite format 3\0" + bytes(range(256)) * 16)
+    import ray
+
+    assert main(["run", str(m)]) == 2 and not ray.is_initialized()
+    assert "not a usable SQLite job database" in capsys.readouterr().err
+    (tmp_path / "out/proceduralize.db").unlink()
+    assert main(["run", str(m), "--pptbf-db", str(tmp_path / "nodb")]) == 2 and not ray.is_initialized()
+    assert "--pptbf-db" in capsys.readouterr().err
+
+
+def test_every_stage_option_is_validated_with_its_field(tmp_path, capsys):
+    opts = {"recompose": {"iterations": -3, "lr": "fast", "optimizer": "sgd"}, "masks": {"max_evals": -5},
+            "noise": {"kernel_sizes": [15, -2]}}
+    m = manifest(tmp_path / "m.json", "v", "out", [{"name": "t", "albedo": "a.png", **opts}])
+    assert main(["run", str(m)]) == 2
+    err = capsys.readouterr().err
+    for f in ("recompose.iterations", "recompose.lr", "recompose.optimizer", "masks.max_evals",
+              "noise.kernel_sizes"):
+        assert f"(t).{f}:" in err, (f, err)

@@ -89,6 +89,19 @@ def _open_input(path: Path, max_pixels: int) -> "oiio.ImageInput":
     return inp
 
 
+def image_header(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[int, int, int]:
+    """(width, height, channels) from an image file's header, without decoding its pixels."""
+    inp = _open_input(Path(path), max_pixels)
+    spec = inp.spec()
+    inp.close()
+    return int(spec.width), int(spec.height), int(spec.nchannels)
+
+
+def working_size_for(working_size: int | tuple[int, int] | None, w: int, h: int) -> tuple[int, int]:
+    """The (w, h) a material of w x h pixels is processed at (see load_material's ``working_size``)."""
+    return _target_size(working_size, w, h)
+
+
 def _channel_index(pick: Channel, names: tuple[str, ...], path: Path) -> int:
     """Resolve a channel pick (letter, channel name or index) against an image's channel names."""
     n = len(names)
