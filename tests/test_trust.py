@@ -419,3 +419,85 @@ def test_every_stage_option_is_validated_with_its_field(tmp_path, capsys):
     for f in ("recompose.iterations", "recompose.lr", "recompose.optimizer", "masks.max_evals",
               "noise.kernel_sizes"):
         assert f"(t).{f}:" in err, (f, err)
+
+
+# ----------------------------------------------------------------------------- 5. local runs bind to loopback
+
+
+def _listeners() -> list[tuple[str, int, int]]:
+    """(address, port, pid) of every listening TCP socket on this host, from `ss -ltnpH`."""
+    import re
+
+    out = subprocess.run(["ss", "-ltnpH"], capture_output=True, text=True, check=True).stdout
+    found = []
+    for line in out.splitlines():
+        parts = line.split()
+        addr, _, port = parts[3].rpartition(":")
+        for pid in re.findall(r"pid=(\d+)", line):
+            found.append((addr.strip("[]"), int(port), int(pid)))
+    return found
+
+
+def _descendants(root: int) -> set[int]:
+    """``root`` and every process below it (from /proc)."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    tree, grew = {root}, True
+    while grew:
+        new = {p for p, pp in parent.items() if pp in tree} - tree
+        tree |= new
+        grew = bool(new)
+    return tree
+
+
+@pytest.mark.ray
+@pytest.mark.skipif(not Path("/usr/bin/ss").exists() and not Path("/bin/ss").exists(), reason="needs ss")
+def test_a_local_run_listens_on_loopback_only(tmp_path):
+    """During a real local run (a stage held for 15 s), every TCP port the driver's Ray processes listen on
+    (GCS, raylet, object manager, agents, workers) is bound to 127.0.0.1, none to all interfaces."""
+    import time
+
+    m = manifest(tmp_path / "m.json", "ports", "out", [{"name": "t", **synthetic_maps(tmp_path / "a", 1)}],
+                 stages=("load",))
+    env = {**ENV, "PROCEDURALIZE_FAULTS": json.dumps({"sleep": {"stage": "load", "seconds": 15}})}
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "run", str(m), "--quiet", "--num-cpus", "1"],
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        seen: dict[tuple[str, int], str] = {}
+        deadline = time.time() + 150
+        while time.time() < deadline and proc.poll() is None:
+            tree = _descendants(proc.pid)
+            for addr, port, pid in _listeners():
+                if pid in tree:
+                    seen[(addr, port)] = Path(f"/proc/{pid}/comm").read_text().strip() if Path(
+                        f"/proc/{pid}/comm").exists() else "?"
+            time.sleep(1.0)  # until the run ends: the listeners of every phase (start, workers) are seen
+    finally:
+        out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 0, out
+    assert len(seen) >= 4, seen  # GCS, raylet, object manager, agents at least: the check saw the run
+    print("listeners:", sorted(seen.items()))
+    exposed = {k: v for k, v in seen.items() if k[0] not in ("127.0.0.1", "::1", "::ffff:127.0.0.1")}
+    assert not exposed, f"listening beyond loopback: {exposed}"
+
+
+def test_deploy_configs_require_a_token_and_keep_the_dashboard_private():
+    import yaml
+
+    d = REPO / "deploy"
+    rc = yaml.safe_load((d / "kuberay/raycluster.yaml").read_text())
+    assert rc["spec"]["authOptions"] == {"mode": "token"}
+    rj = yaml.safe_load((d / "kuberay/rayjob.yaml").read_text())
+    assert rj["spec"]["rayClusterSpec"]["authOptions"] == {"mode": "token"}
+    up = yaml.safe_load((d / "cluster.yaml").read_text())
+    assert "-e RAY_AUTH_MODE=token" in up["docker"]["run_options"] and up["file_mounts"]
+    head = " ".join(up["head_start_ray_commands"])
+    assert "--dashboard-host=127.0.0.1" in head and "0.0.0.0" not in head
+    for f in ("kuberay/raycluster.yaml", "kuberay/rayjob.yaml"):  # no public Service type anywhere
+        assert "LoadBalancer" not in (d / f).read_text().replace("never a public\n# LoadBalancer", "")
+    assert "What must not be exposed" in (d / "README.md").read_text()
