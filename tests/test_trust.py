@@ -501,3 +501,23 @@ def test_deploy_configs_require_a_token_and_keep_the_dashboard_private():
     for f in ("kuberay/raycluster.yaml", "kuberay/rayjob.yaml"):  # no public Service type anywhere
         assert "LoadBalancer" not in (d / f).read_text().replace("never a public\n# LoadBalancer", "")
     assert "What must not be exposed" in (d / "README.md").read_text()
+
+
+# ----------------------------------------------------------------------------- 10. the example ships its data
+
+
+def test_example_manifest_needs_nothing_outside_the_repository():
+    """The README's main command on a bare clone: every file examples/manifest.toml reads is inside the
+    repository (under examples/maps, with its licence note), readable, and small."""
+    from service.manifest import load_manifest
+    from workers.maps import image_header
+
+    man = load_manifest(REPO / "examples" / "manifest.toml")
+    files = [f for m in man.materials for f in m.input_files()]
+    assert len(files) == 9
+    for f in files:
+        assert f.resolve().is_relative_to(REPO / "examples" / "maps"), f
+        w, h, _ = image_header(f)
+        assert (w, h) == (512, 512)
+    assert sum(f.stat().st_size for f in files) < 4 * 2**20
+    assert "CC0" in (REPO / "examples" / "maps" / "LICENCE.md").read_text()
