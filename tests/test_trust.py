@@ -521,3 +521,11 @@ def test_example_manifest_needs_nothing_outside_the_repository():
         assert (w, h) == (512, 512)
     assert sum(f.stat().st_size for f in files) < 4 * 2**20
     assert "CC0" in (REPO / "examples" / "maps" / "LICENCE.md").read_text()
+
+
+def test_report_shows_tracebacks_only_for_internal_errors():
+    from service.report import _message
+
+    tb = 'Traceback (most recent call last):\n  File "x.py", line 1\nInputError: /data/a.png: file not found'
+    assert _message(tb, "InputError") == "InputError: /data/a.png: file not found"
+    assert "<details>" in _message(tb.replace("InputError", "KeyError"), "KeyError")
