@@ -258,7 +258,10 @@ def stage_load(call: dict, resources: Any = None) -> dict:
     ws = tuple(ws) if isinstance(ws, list) else ws
     sizes = [image_header(maps[k]["file"]) for k in maps]  # headers only: refuse before decoding anything
     w0, h0 = sizes[0][:2]
-    tw, th = working_size_for(ws, w0, h0)
+    try:
+        tw, th = working_size_for(ws, w0, h0)
+    except InputError as exc:
+        raise InputError(f"{maps['albedo']['file']}: {exc}") from None
     limit = budget.budget(call.get("memory_budget"))
     budget.check(f"loading {maps['albedo']['file']} ({w0}x{h0}) at working size {tw}x{th}",
                  budget.load_bytes(sizes, (tw, th)), limit)

@@ -186,7 +186,7 @@ def test_a_hanging_stage_times_out_and_the_batch_goes_on(tmp_path):
     job.stage_timeout; its material fails with a StageTimeout naming the field, the other finishes."""
     m = manifest(tmp_path / "m.json", "hang", "out", [{"name": "stuck", **synthetic_maps(tmp_path / "a", 1)},
                                                       {"name": "fine", **synthetic_maps(tmp_path / "b", 2)}],
-                 stage_timeout=3)
+                 stage_timeout=20)  # room for a cold worker's imports on a loaded machine
     env = {**ENV, "PROCEDURALIZE_FAULTS": json.dumps({"sleep": {"stage": "decompose", "seconds": 1e9,
                                                                 "material": "stuck"}})}
     t0 = __import__("time").perf_counter()
