@@ -63,6 +63,53 @@ def _positive_float(text: str) -> float:
     return v
 
 
+def _scale(text: str) -> float:
+    """A pattern scale within graph.MIN_SCALE .. graph.MAX_SCALE (argparse type)."""
+    lo, hi = 1.0 / 64.0, 64.0  # workers.graph.MIN_SCALE, MAX_SCALE (not imported: --help stays light)
+    v = _positive_float(text)
+    if not lo <= v <= hi:
+        raise argparse.ArgumentTypeError(f"{text!r} must be from {lo:g} to {hi:g}")
+    return v
+
+
+def _seed(text: str) -> int:
+    """A realisation seed 0 .. 2**63-1 (argparse type)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 0 <= v < 2**63:
+        raise argparse.ArgumentTypeError(f"{text!r} must be from 0 to 2**63-1")
+    return v
+
+
+def _add_budget_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--memory-budget", default=None, metavar="SIZE",
+                   help="refuse a request estimated to need more memory (e.g. 4G; default "
+                        "$PROCEDURALIZE_MEMORY_BUDGET, else half of this machine's memory)")
+
+
+def output_folder(path: Path, flag: str = "--out") -> Path:
+    """Create the output folder ``path``; InputError naming ``flag`` when it is a file or cannot be made."""
+    from workers.errors import InputError
+
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot create the folder ({exc.strerror or exc})") from None
+    return path
+
+
+def check_render_memory(mat, w: int, h: int, budget_text: str | None) -> None:
+    """Refuse (MemoryBudgetError, exit 2) a render estimated to exceed the memory budget, before allocating."""
+    from workers import budget
+
+    budget.check(f"rendering {w}x{h} ({len(mat.nodes)} graph nodes)", budget.render_bytes(len(mat.nodes), w, h),
+                 budget.budget(budget_text))
+
+
 def _print_table(rows: list[tuple], header: tuple) -> None:
     """Print a left-aligned text table."""
     cells = [tuple(str(c) for c in header)] + [tuple(str(c) for c in r) for r in rows]
@@ -93,7 +140,7 @@ def _write_maps(maps: dict, out: Path, bits: int = 8) -> dict[str, Path]:
     """Write evaluated maps as PNG: albedo sRGB, normal encoded 0..1, grey maps 16-bit."""
     import numpy as np
 
-    from workers.maps import linear_to_srgb, write_image
+    from workers.maps import linear_to_srgb, output_file, write_image
 
     files: dict[str, Path] = {}
     for name, arr in maps.items():
@@ -108,7 +155,7 @@ def _write_maps(maps: dict, out: Path, bits: int = 8) -> dict[str, Path]:
                 logger.warning("map %s spans [%.3g, %.3g]: clipped to [0, 1] in the PNG", name, lo, hi)
         if data.ndim == 3 and data.shape[2] == 2:
             data = np.concatenate([data, np.zeros_like(data[..., :1])], axis=2)
-        files[name] = write_image(out / f"{name}.png", data[..., :4] if data.ndim == 3 else data, bits=b)
+        files[name] = write_image(output_file(out, name, ".png"), data[..., :4] if data.ndim == 3 else data, bits=b)
     return files
 
 
@@ -157,12 +204,14 @@ def _add_render(sub) -> None:
                                    "plus preview.png (top light | side light).")
     p.add_argument("material", type=Path, metavar="MATERIAL.json")
     p.add_argument("--size", type=_size, required=True, metavar="WxH", help="output size, e.g. 2048x2048")
-    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale: 1 = the input maps' pattern size (files without input_size: the "
-                        "working size's), 2 = features twice as big")
-    p.add_argument("--seed", type=int, default=None, help="realisation seed (default: the material's own)")
+    p.add_argument("--scale", type=_scale, default=1.0,
+                   help="pattern scale: 1 = the input maps' pattern size (files without input_size: the working "
+                        "size's), 2 = features twice as big; 1/64 to 64")
+    p.add_argument("--seed", type=_seed, default=None, help="realisation seed (default: the material's own)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bit depth of albedo and normal PNGs")
     p.add_argument("--no-preview", action="store_true", help="skip the preview render")
+    _add_budget_option(p)
     p.set_defaults(handler=_cmd_render)
 
 
@@ -171,10 +220,11 @@ def _cmd_render(args) -> int:
 
     mat = graph.load(args.material)
     w, h = args.size
+    output_folder(args.out)
+    check_render_memory(mat, w, h, args.memory_budget)
     t0 = time.perf_counter()
     maps = graph.evaluate(mat, w, h, scale=args.scale, seed=args.seed)
     seconds = time.perf_counter() - t0
-    args.out.mkdir(parents=True, exist_ok=True)
     files = _write_maps(maps, args.out, bits=args.bits)
     preview = None if args.no_preview else _write_preview(maps, args.out / "preview.png")
     info = {"material": str(args.material), "size": [w, h], "scale": args.scale,
@@ -371,7 +421,7 @@ def _open_job(ref: str):
         db, name = known[ref], ref
     if not Path(db).is_file():
         raise InputError(f"{db}: no job database here (has the job been run?)")
-    store = Store(db)
+    store = Store(db, readonly=True)  # status, results, report and evaluate only read
     jobs = store.jobs()
     if name is None:
         if not jobs:
@@ -414,12 +464,29 @@ def _load_manifest_or_report(path: Path, output: Path | None = None):
         return None
 
 
+def _check_before_ray(man, pptbf_db: str | None) -> None:
+    """What would fail every material is checked before Ray starts: the job database (opened, and migrated
+    when older) and the PPTBF database folder."""
+    from service.store import Store
+    from workers.errors import InputError
+
+    for label, folder in (("--pptbf-db", pptbf_db), ("job.pptbf_database", man.pptbf_database)):
+        if folder is not None and not (Path(folder) / "meta.json").is_file():
+            raise InputError(f"{label} {folder}: not a PPTBF database folder (no meta.json); build one with "
+                             "`proceduralize db rebuild --out DIR` or drop the option to use the bundled one")
+    if man.database.exists() and man.database.stat().st_size == 0:
+        raise InputError(f"{man.database}: the job database is an empty file; delete it or choose another "
+                         "job.database")
+    Store(man.database).close()
+
+
 def _cmd_run(args) -> int:
     from service.scheduler import run_job
 
     man = _load_manifest_or_report(args.manifest, output=args.out)
     if man is None:
         return 2
+    _check_before_ray(man, args.pptbf_db)
     _remember_job(man.name, man.database)
     print(f"job {man.name}: {len(man.materials)} material(s) -> {man.output}", file=sys.stderr)
     report = run_job(man, address=args.address, num_cpus=args.num_cpus, progress=not args.quiet,
@@ -519,7 +586,7 @@ def _cmd_status(args) -> int:
     if args.job is None:
         rows = []
         for name, db in sorted(_known_databases().items()):
-            with Store(db) as store:
+            with Store(db, readonly=True) as store:
                 for j in store.jobs():
                     mats = store.materials(j["name"])
                     rows.append({"job": j["name"], "status": _job_state(j), "runs": j.get("runs"),
@@ -568,28 +635,52 @@ def _add_results(sub) -> None:
     p.set_defaults(handler=_cmd_results)
 
 
+def _artefact_state(path: Path, checksum: str) -> str:
+    """'ok' when the file is there with its recorded checksum, else 'missing' or 'changed'."""
+    from service.store import file_checksum
+
+    if not path.is_file():
+        return "missing"
+    return "ok" if file_checksum(path) == checksum else "changed"
+
+
 def _cmd_results(args) -> int:
+    from service import claims
+
     store, name = _open_job(args.job)
     with store:
         job = store.job(name)
         mats = store.materials(name)
         arts = store.artefacts(name)
         out = store.output_root(name)
+        db = store.path
     docs = []
     for m in mats:
         mine = [a for a in arts if a["material"] == m["name"]]
         graph = next((a["path"] for a in mine if a["stage"] == "output" and a["path"].endswith("material.json")), None)
         maps = sorted({str(Path(a["path"]).parent) for a in mine if a["stage"] == "output" and "/maps/" in a["path"]})
-        docs.append({"name": m["name"], "status": m["status"], "error": m["error"],
+        states = {a["path"]: _artefact_state(out / a["path"], a["checksum"]) for a in mine}
+        bad = sorted(p for p, st in states.items() if st != "ok")
+        status = m["status"]
+        problems = []
+        if bad:  # files replaced or deleted after the job recorded them: the record no longer holds
+            problems.append(f"{len(bad)} of {len(mine)} files changed or missing since the job wrote them "
+                            f"(e.g. {bad[0]}: {states[bad[0]]}); rerun the job to recompute them")
+        owned = claims.check(out / m["output"], name, db) if mine else None
+        if owned and Path(out / m["output"]).is_dir():
+            problems.append(owned)
+        if problems and status == "done":
+            status = "changed"
+        docs.append({"name": m["name"], "status": status, "error": "; ".join(problems) or m["error"],
                      "folder": str(out / m["output"]), "material_json": str(out / graph) if graph else None,
                      "maps": [str(out / p) for p in maps],
-                     "artefacts": [{k: a[k] for k in ("stage", "item", "path", "kind", "checksum", "bytes")}
-                                   for a in mine]})
+                     "artefacts": [{**{k: a[k] for k in ("stage", "item", "path", "kind", "checksum", "bytes")},
+                                    "state": states[a["path"]]} for a in mine]})
     if args.json:
         print(json.dumps({"job": name, "status": job["status"], "output": str(out), "materials": docs}, indent=1))
     else:
         _print_table([(d["name"], d["status"], d["material_json"] or "-", len(d["maps"]), len(d["artefacts"]),
-                       (d["error"] or "")[:100]) for d in docs],
+                       (d["error"] or "")[:160]) for d in docs],
                      header=("material", "status", "material.json", "map sets", "files", "error"))
     return 0 if all(d["status"] == "done" for d in docs) else 1
 

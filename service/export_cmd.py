@@ -191,7 +191,7 @@ def _cmd_edit(args) -> int:
 
 
 def _add_export(sub) -> None:
-    from service.cli import _common, _positive_float, _size
+    from service.cli import _add_budget_option, _common, _scale, _seed, _size
 
     p = sub.add_parser("export", parents=[_common()], help="export glTF-ready maps and a MaterialX document",
                        description="Evaluate a material at SIZE and write NAME_basecolor.png (sRGB), "
@@ -201,9 +201,11 @@ def _add_export(sub) -> None:
                                    "UsdPreviewSurface material (validated against the MaterialX libraries).")
     p.add_argument("material", type=Path, metavar="MATERIAL.json")
     p.add_argument("--size", type=_size, required=True, metavar="WxH", help="output size, e.g. 2048x2048")
-    p.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale: 1 = the input maps' pattern size, 2 = features twice as big")
-    p.add_argument("--seed", type=int, default=None, help="realisation seed (default: the material's own)")
+    p.add_argument("--scale", type=_scale, default=1.0,
+                   help="pattern scale: 1 = the input maps' pattern size, 2 = features twice as big; 1/64 to 64")
+    p.add_argument("--seed", type=_seed, default=None, help="realisation seed (default: the material's own)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    _add_budget_option(p)
     p.add_argument("--name", default=None, help="file name prefix (default: the material file's folder name)")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bit depth of the colour/ORM PNGs")
     p.add_argument("--no-materialx", action="store_true", help="skip the .mtlx document")
@@ -222,12 +224,18 @@ def _cmd_export(args) -> int:
     from workers import graph
     from workers.export import export_maps
 
+    from service.cli import check_render_memory, output_folder
+    from workers.maps import output_file
+
     mat = graph.load(args.material)
     w, h = args.size
+    name = args.name or export_name(args.material)
+    output_file(args.out, name, "")  # a bad --name is refused before anything is computed or created
+    output_folder(args.out)
+    check_render_memory(mat, w, h, args.memory_budget)
     t0 = time.perf_counter()
     maps = graph.evaluate(mat, w, h, scale=args.scale, seed=args.seed)
     t_eval = time.perf_counter() - t0
-    name = args.name or export_name(args.material)
     files = export_maps(maps, args.out, name=name, materialx=not args.no_materialx, bits=args.bits)
     hmap = maps.get("height")
     info = {"material": str(args.material), "size": [w, h], "scale": args.scale,

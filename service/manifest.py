@@ -27,12 +27,14 @@ import copy
 import difflib
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-from workers.errors import ManifestError
+from workers import budget
+from workers.errors import ManifestError, ProceduralizeError
 
 STAGES = ("load", "decompose", "noise", "masks", "recompose", "output")
 MAP_KEYS = ("albedo", "normal", "roughness", "height", "metallic")
@@ -44,8 +46,10 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 _CHANNEL_RE = re.compile(r"^([RGBA]|[0-9]|[A-Za-z][A-Za-z0-9_.]*)$")
 
 JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database",
-            "gpu_wait_s", "recompose_cpus"}
+            "gpu_wait_s", "recompose_cpus", "stage_timeout", "memory_budget"}
 RECOMPOSE_DEVICES = ("auto", "cuda", "cpu")
+#: seconds one stage item may run before it is cancelled and its material fails (job.stage_timeout)
+DEFAULT_STAGE_TIMEOUT_S = 3600.0
 MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "metallic_channel",
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
                  "noise", "masks", "recompose", "stages"}
@@ -150,7 +154,8 @@ class JobManifest:
     materials: list[MaterialSpec]
     max_attempts: int = 3
     mask_actors: int | None = None
-    debug: dict = field(default_factory=dict)
+    stage_timeout: float = DEFAULT_STAGE_TIMEOUT_S
+    memory_budget: int | None = None   # bytes per stage item; None: half the worker machine's memory
     description: str = ""
     pptbf_database: Path | None = None
     gpu_wait_s: float = 600.0    # how long GPU recompositions wait for a GPU node before "auto" runs them on CPU
@@ -171,7 +176,7 @@ class JobManifest:
         """JSON-able form (stored in the job row)."""
         return {"name": self.name, "source": str(self.source) if self.source else None, "root": str(self.root),
                 "output": str(self.output), "database": str(self.database), "stages": self.stages,
-                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "debug": self.debug,
+                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "stage_timeout": self.stage_timeout, "memory_budget": self.memory_budget,
                 "description": self.description, "pptbf_database": str(self.pptbf_database or ""),
                 "gpu_wait_s": self.gpu_wait_s, "recompose_cpus": self.recompose_cpus,
                 "materials": [m.to_json() for m in self.materials]}
@@ -458,7 +463,10 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
         if key in raw and raw[key] is not None and key.split("_")[0] not in raw:
             probs.add(f"{where}.{key}", f"given but the material has no {key.split('_')[0]} map")
     ws = merged.get("working_size", 512)
-    working = None if ws is None else _size(ws, f"{where}.working_size", probs)
+    if _is_int(ws) and 8 <= ws <= 32768:  # N is the longer side; the aspect ratio is kept at load
+        working = int(ws)
+    else:
+        working = None if ws is None else _size(ws, f"{where}.working_size", probs)
     dec = _decompose(merged.get("decompose", {"mode": "auto"}), f"{where}.decompose", base, probs)
     outs = _outputs(merged.get("outputs", {}), f"{where}.outputs", probs)
     seed = merged.get("seed", 0)
@@ -475,6 +483,7 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
             fields = _config_fields(key)
             if fields is not None:
                 probs.unknown(f"{where}.{key}", set(c), fields)
+                _check_options(key, c, f"{where}.{key}", probs)
         if key == "recompose" and c.get("device", "auto") not in RECOMPOSE_DEVICES:
             probs.add(f"{where}.recompose.device", f"must be one of {list(RECOMPOSE_DEVICES)}, got {c['device']!r}")
         confs[key] = c
@@ -514,8 +523,109 @@ def _config_fields(stage: str) -> set[str] | None:
     return set(c.__dataclass_fields__) if c is not None and hasattr(c, "__dataclass_fields__") else None
 
 
-def _debug(v: Any, root: Path, probs: _Problems) -> dict:
-    """Test hooks: crash_once = {stage, marker} (os._exit once), sleep = {stage, seconds}."""
+#: the largest count or size any stage option may take (iterations, evaluations, windows, kernel sizes...)
+MAX_OPTION_INT = 1_000_000
+#: the largest magnitude of a real-valued stage option (rates, weights, sigmas, budgets in seconds)
+MAX_OPTION_FLOAT = 1e6
+
+
+def _option_problem(value: Any, kind: str) -> str | None:
+    """Why ``value`` does not fit a config field annotated ``kind`` (None when it fits). Counts and reals are
+    never negative (every stage option's default is >= 0); pairs of reals (offsets) may be."""
+    kind = kind.replace(" ", "")
+    optional = kind.endswith("|None")
+    kind = kind[:-5] if optional else kind
+    if value is None:
+        return None if optional else "must not be null"
+    if kind == "bool":
+        return None if isinstance(value, bool) else "must be true or false"
+    if kind == "int":
+        ok = _is_int(value) and 0 <= value <= MAX_OPTION_INT
+        return None if ok else f"must be an integer from 0 to {MAX_OPTION_INT}"
+    if kind == "float":
+        ok = _is_num(value) and math.isfinite(value) and 0 <= value <= MAX_OPTION_FLOAT
+        return None if ok else f"must be a finite number from 0 to {MAX_OPTION_FLOAT:g}"
+    if kind == "str":
+        return None if isinstance(value, str) and value else "must be a non-empty string"
+    if kind.startswith("tuple[") or kind.startswith("list["):
+        if not isinstance(value, (list, tuple)) or not value or len(value) > 64:
+            return "must be a non-empty list (at most 64 entries)"
+        inner = kind[kind.index("[") + 1:-1].split(",")
+        if inner[-1] != "...":
+            if len(value) != len(inner):
+                return f"must be a list of {len(inner)} values"
+            if inner[0] == "float":  # a pair of reals (an offset): any sign
+                ok = all(_is_num(v) and math.isfinite(v) and abs(v) <= MAX_OPTION_FLOAT for v in value)
+                return None if ok else "must hold finite numbers"
+        probs = {_option_problem(v, inner[0]) for v in value} - {None}
+        return f"each entry {sorted(probs)[0]}" if probs else None
+    if kind.startswith("dict"):
+        if not isinstance(value, dict):
+            return "must be a table"
+        bad = [k for k, v in value.items() if _option_problem(v, "float")]
+        return f"entries {bad} must be finite numbers from 0 to {MAX_OPTION_FLOAT:g}" if bad else None
+    return None
+
+
+def _check_options(stage: str, options: dict, where: str, probs: _Problems) -> None:
+    """Type and range of every option of a stage against its config dataclass, each problem naming its field;
+    then the config's own checks (choices such as the optimiser) when it has them."""
+    import dataclasses
+    import importlib
+
+    mod, cls_name = _CONFIGS[stage]
+    cls = getattr(importlib.import_module(mod), cls_name)
+    types = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+    bad = False
+    for k, v in options.items():
+        why = _option_problem(v, types[k]) if k in types else None
+        if why:
+            probs.add(f"{where}.{k}", f"{why}, got {v!r}")
+            bad = True
+        allowed = _CHOICES.get((stage, k))
+        if k in types and not why and allowed is not None and not all(allowed(x) for x in (v if isinstance(v, list) else [v])):
+            probs.add(f"{where}.{k}", f"{v!r} is not one of the known values ({allowed.__doc__})")
+            bad = True
+    if bad or set(options) - set(types):
+        return
+    try:
+        conf = cls.from_dict(options) if hasattr(cls, "from_dict") else cls(**{
+            k: tuple(v) if isinstance(v, list) else v for k, v in options.items()})
+        if callable(getattr(conf, "validate", None)):
+            conf.validate()
+    except (TypeError, ValueError, ProceduralizeError) as exc:
+        probs.add(where, str(exc))
+
+
+def _one_of(*values: str) -> Callable[[str], bool]:
+    def check(v: str) -> bool:
+        return v in values
+    check.__doc__ = ", ".join(values)
+    return check
+
+
+def _nlopt_algorithm(v: str) -> bool:
+    """a local derivative-free NLopt algorithm name such as LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA"""
+    import nlopt
+
+    return bool(re.fullmatch(r"LN_[A-Z_]+", v)) and hasattr(nlopt, v)
+
+
+def _torch_device(v: str) -> bool:
+    """auto, cpu, cuda or cuda:N"""
+    return bool(re.fullmatch(r"auto|cpu|cuda(:[0-9]{1,2})?", v))
+
+
+#: string options with a closed set of values (stage, option) -> check
+_CHOICES: dict[tuple[str, str], Callable[[str], bool]] = {
+    ("recompose", "optimizer"): _one_of("adam", "lbfgs"), ("recompose", "device"): _torch_device,
+    ("masks", "algorithm"): _nlopt_algorithm, ("masks", "incomplete"): _one_of("known", "inpaint"),
+    ("recompose", "optimise"): _one_of("filters", "blend", "level", "blur")}
+
+
+def parse_faults(v: Any, root: Path, probs: _Problems) -> dict:
+    """Fault injection for tests, never part of a manifest (the scheduler reads it from the environment
+    variable PROCEDURALIZE_FAULTS): crash_once = {stage, marker} (os._exit once), sleep = {stage, seconds}."""
     if not isinstance(v, dict):
         probs.add("debug", "must be a table")
         return {}
@@ -537,12 +647,35 @@ def _debug(v: Any, root: Path, probs: _Problems) -> dict:
     return out
 
 
+#: node count assumed when a manifest's output sizes are checked against the memory budget (real graphs: 10-40)
+NOMINAL_GRAPH_NODES = 32
+
+
+def _check_memory(materials: list[MaterialSpec], limit: int, probs: _Problems) -> None:
+    """Refuse at validation what is certain to exceed the budget: the fitting stages at a [W, H] working size
+    and every output render (at a nominal graph size). A working size N (the longer side) is checked at load,
+    where the maps' aspect ratio is known."""
+    for i, m in enumerate(materials):
+        where = f"materials[{i}] ({m.name})"
+        ws = m.working_size
+        if isinstance(ws, tuple):
+            need = budget.fit_bytes(*ws)
+            if need > limit:
+                probs.add(f"{where}.working_size", f"{ws}: the fitting stages need about {budget.gib(need)}, "
+                                                   f"over the memory budget of {budget.gib(limit)}")
+        for w, h in m.outputs.sizes:
+            need = budget.render_bytes(NOMINAL_GRAPH_NODES, w, h)
+            if need > limit:
+                probs.add(f"{where}.outputs.sizes", f"{w}x{h}: a render needs about {budget.gib(need)}, over the "
+                                                    f"memory budget of {budget.gib(limit)}")
+
+
 def validate(doc: dict, root: str | Path, source: str | Path | None = None,
              output_override: str | Path | None = None) -> JobManifest:
     """Validate a parsed manifest; relative paths resolve against ``root``. Raises ManifestError with all problems."""
     root = Path(root).resolve()
     probs = _Problems()
-    probs.unknown("", set(doc), {"job", "defaults", "materials", "debug"})
+    probs.unknown("", set(doc), {"job", "defaults", "materials"})
     job = doc.get("job")
     if not isinstance(job, dict):
         probs.add("job", "required table with name and output")
@@ -565,6 +698,20 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
         probs.add("job.database", f"must be a file path, got {db_raw!r}")
         db_raw = DEFAULT_DATABASE
     database = (output / Path(db_raw).expanduser()).resolve(strict=False)
+    if not _inside(database, output) or database == output:
+        probs.add("job.database", f"{db_raw!r} is outside the job's output folder {output}; use a file name "
+                                  "relative to it, without '..'")
+    mem = job.get("memory_budget")
+    if mem is not None:
+        try:
+            mem = budget.parse_bytes(mem, "job.memory_budget")
+        except ProceduralizeError as exc:
+            probs.append(str(exc))
+            mem = None
+    timeout = job.get("stage_timeout", DEFAULT_STAGE_TIMEOUT_S)
+    if not (_is_num(timeout) and 1 <= timeout <= 7 * 86400):
+        probs.add("job.stage_timeout", f"must be a number of seconds from 1 to 604800 (a week), got {timeout!r}")
+        timeout = DEFAULT_STAGE_TIMEOUT_S
     stages = _stage_list(job.get("stages"), "job.stages", probs)
     max_attempts = job.get("max_attempts", 3)
     if not (_is_int(max_attempts) and 1 <= max_attempts <= 20):
@@ -609,11 +756,13 @@ def validate(doc: dict, root: str | Path, source: str | Path | None = None,
         if m.output in outs and outs[m.output] != m.name:
             probs.add(f"materials ({m.name}).output", f"folder {m.output!r} is also used by {outs[m.output]!r}")
         outs[m.output] = m.name
-    debug = _debug(doc.get("debug", {}), root, probs)
+    if not probs:
+        _check_memory(materials, budget.budget(mem), probs)
     if probs:
         raise ManifestError(list(probs), str(source) if source else None)
     return JobManifest(name=name, source=Path(source) if source else None, root=root, output=output,
                        database=database, stages=stages, materials=materials, max_attempts=int(max_attempts),
-                       mask_actors=mask_actors, debug=debug, description=str(job.get("description", "")),
+                       mask_actors=mask_actors, stage_timeout=float(timeout), memory_budget=mem,
+                       description=str(job.get("description", "")),
                        pptbf_database=(root / Path(pdb).expanduser()).resolve(strict=False) if pdb else None,
                        gpu_wait_s=float(gpu_wait), recompose_cpus=int(rec_cpus))

@@ -10,15 +10,18 @@ returns, so the driver can record them and a rerun can skip them. No Ray and no 
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -36,6 +39,31 @@ class StageUnavailable(RuntimeError):
     """A stage's module is not installed / not written yet."""
 
 
+class StageTimeout(RuntimeError):
+    """A stage item ran longer than the job's ``stage_timeout`` (not retried: it would time out again)."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float | None, what: str) -> Iterator[None]:
+    """Raise StageTimeout in this thread after ``seconds`` of wall time (SIGALRM; main thread only, which is
+    where Ray runs tasks and single-threaded actor calls). A C call that never returns to Python is not
+    interrupted; the timer fires as soon as it does."""
+    if not seconds or threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGALRM"):
+        yield
+        return
+
+    def expire(signum, frame):
+        raise StageTimeout(f"{what} ran longer than {seconds:g} s (job.stage_timeout); cancelled")
+
+    old = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, float(seconds))
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
 @dataclass
 class StageCall:
     """Everything a worker needs for one stage item (JSON-able)."""
@@ -46,6 +74,8 @@ class StageCall:
     stage: str
     item: str = ""
     debug: dict = field(default_factory=dict)
+    timeout: float | None = None
+    memory_budget: int | None = None   # bytes; None: the worker's default (half its machine's memory)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -218,16 +248,30 @@ def stage_load(call: dict, resources: Any = None) -> dict:
     """Read and validate the maps, write them at working size (npz for the next stages, PNG for people)."""
     from workers.maps import load_material, save_material
 
+    from workers import budget
+    from workers.maps import image_header, working_size_for
+
     m = call["material"]
     maps = m["maps"]
     ch = {k: maps[k].get("channel") for k in maps}
     ws = m.get("working_size")
+    ws = tuple(ws) if isinstance(ws, list) else ws
+    sizes = [image_header(maps[k]["file"]) for k in maps]  # headers only: refuse before decoding anything
+    w0, h0 = sizes[0][:2]
+    try:
+        tw, th = working_size_for(ws, w0, h0)
+    except InputError as exc:
+        raise InputError(f"{maps['albedo']['file']}: {exc}") from None
+    limit = budget.budget(call.get("memory_budget"))
+    budget.check(f"loading {maps['albedo']['file']} ({w0}x{h0}) at working size {tw}x{th}",
+                 budget.load_bytes(sizes, (tw, th)), limit)
+    budget.check(f"fitting material {m['name']!r} at working size {tw}x{th}", budget.fit_bytes(tw, th), limit)
     mat = load_material(
         maps["albedo"]["file"], *(maps[k]["file"] if k in maps else None for k in
                                   ("normal", "roughness", "height", "metallic")),
         roughness_channel=ch.get("roughness"), metallic_channel=ch.get("metallic"),
         albedo_colorspace=m.get("albedo_colorspace", "srgb"), normal_convention=m.get("normal_convention", "opengl"),
-        working_size=tuple(ws) if isinstance(ws, list) else ws, name=m["name"])
+        working_size=ws, name=m["name"])
     out = material_dir(call) / "load"
     arrays = {k: v.astype(np.float32) for k, v in mat.maps().items()}
     files = [write_npz(out / "maps.npz", arrays)]
@@ -404,7 +448,7 @@ def stage_recompose(call: dict, resources: Any = None) -> dict:
 
 def _write_maps(maps: dict[str, np.ndarray], out: Path, bits: int) -> list[Path]:
     """Evaluated maps as PNG: albedo sRGB, normal encoded, grey maps 16-bit."""
-    from workers.maps import linear_to_srgb, write_image
+    from workers.maps import linear_to_srgb, output_file, write_image
 
     files = []
     for name, arr in maps.items():
@@ -414,7 +458,7 @@ def _write_maps(maps: dict[str, np.ndarray], out: Path, bits: int) -> list[Path]
             data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
         else:
             data, b = np.clip(arr, 0.0, 1.0), 16
-        files.append(write_image(out / f"{name}.png", data[..., :3] if data.ndim == 3 else data, bits=b))
+        files.append(write_image(output_file(out, name, ".png"), data[..., :3] if data.ndim == 3 else data, bits=b))
     return files
 
 
@@ -460,6 +504,10 @@ def stage_output(call: dict, resources: Any = None) -> dict:
     files = [graph.save(proc, mdir / "material.json")] if tag == output_renders(m)[0] else []
     outs = m.get("outputs", {})
     w, h, seed, scale = _parse_render(tag)
+    from workers import budget
+
+    budget.check(f"rendering {m['name']!r} at {w}x{h}", budget.render_bytes(len(proc.nodes), w, h),
+                 budget.budget(call.get("memory_budget")))
     t0 = time.perf_counter()
     maps = graph.evaluate(proc, w, h, scale=scale, seed=seed)
     folder = mdir / "maps" / tag
@@ -507,8 +555,10 @@ def run_stage(call: dict, resources: Any = None) -> dict:
         raise StageUnavailable(f"stage {stage!r} needs module(s) {', '.join(missing)}, which are not installed")
     started = time.time()
     t0 = time.perf_counter()
-    _debug_hooks(call)
-    res = STAGE_FUNCS[stage](call, resources)
+    what = f"stage {stage}" + (f"[{call['item']}]" if call.get("item") else "")
+    with time_limit(call.get("timeout"), what):
+        _debug_hooks(call)
+        res = STAGE_FUNCS[stage](call, resources)
     root = call["root"]
     arts = [artefact(root, Path(p), kind=f"{stage}:{Path(p).suffix.lstrip('.')}") for p in res["files"]]
     return {"artefacts": arts, "info": res.get("info", {}), "worker": f"{socket.gethostname()}:{os.getpid()}",

@@ -300,12 +300,18 @@ def _timings_section(store, job: str, material: str) -> str:
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
 
-def _message(text: str) -> str:
-    """An error message: its last line, with the whole text (a traceback) folded below."""
+#: error kinds that are about the input (bad file, option, budget, timeout), not about the code: the report
+#: shows their message only; any other kind is an internal error and keeps its traceback for a developer
+USER_ERRORS = {"InputError", "ManifestError", "GraphError", "DatabaseError", "MemoryBudgetError", "StageTimeout",
+               "StageUnavailable"}
+
+
+def _message(text: str, kind: str | None = None) -> str:
+    """An error message: its last line, with the whole text (a traceback) folded below for internal errors."""
     clean = _ANSI.sub("", text).strip()
     lines = [ln for ln in clean.splitlines() if ln.strip()]
-    if len(lines) <= 1:
-        return _e(clean)
+    if len(lines) <= 1 or kind in USER_ERRORS:
+        return _e(lines[-1] if lines else clean)
     return f"{_e(lines[-1])}<details><summary>details</summary><pre>{_e(clean)}</pre></details>"
 
 
@@ -316,7 +322,7 @@ def _errors_section(store, job: str, material: dict) -> str:
     if not errs:
         return head + ("" if head else '<p class="ok">no errors</p>')
     rows = [(_fmt_time(e["time"]), _e(e["stage"]), _e(e["item"] or "-"), _num(e["attempt"]), _e(e["kind"] or "-"),
-             "final" if e["final"] else "retried", _message(e["message"] or "")) for e in errs]
+             "final" if e["final"] else "retried", _message(e["message"] or "", e["kind"])) for e in errs]
     return head + _table(("time", "stage", "item", "attempt", "kind", "outcome", "message"), rows)
 
 

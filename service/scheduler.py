@@ -25,6 +25,7 @@ sees the demand (pending actors) while the first stages run. When no GPU actor h
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -34,10 +35,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import pipeline, placement
+from service import claims, pipeline, placement
 from service.manifest import JobManifest, MaterialSpec
 from service.pipeline import DEPENDS, NOISE_MAPS, STAGES, StageCall
 from service.store import Store
+from workers.errors import InputError, ManifestError
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +50,10 @@ POOLS = ("masks", "cpu", "gpu")
 MAX_START_FAILURES = 3
 #: seconds between two reads of the cluster's capacity while a job runs
 CAPACITY_REFRESH_S = 5.0
+#: environment variable with fault-injection hooks for tests (JSON, see parse_faults)
+FAULTS_ENV = "PROCEDURALIZE_FAULTS"
+#: the address every listener of a local Ray binds to: nothing of a local run is reachable from the network
+LOCAL_IP = "127.0.0.1"
 
 
 @dataclass
@@ -125,12 +131,38 @@ def _retryable_errors() -> tuple[type, ...]:
     import ray.exceptions as rex
 
     names = ("WorkerCrashedError", "RayActorError", "ActorDiedError", "ActorUnavailableError", "ObjectLostError",
-             "OwnerDiedError", "NodeDiedError", "LocalRayletDiedError", "OutOfMemoryError", "TaskUnschedulableError")
+             "OwnerDiedError", "NodeDiedError", "LocalRayletDiedError", "TaskUnschedulableError")
+    # OutOfMemoryError is not among them: the same item on the same inputs would run out of memory again
     return tuple(getattr(rex, n) for n in names if hasattr(rex, n))
 
 
+def parse_faults(doc: dict, where: str = "faults") -> dict:
+    """Validated fault-injection hooks (tests only): {crash_once: {stage, marker, material}, sleep: {stage,
+    seconds, material}}."""
+    from service.manifest import _Problems, parse_faults as parse
+
+    probs = _Problems()
+    out = parse(doc, Path.cwd(), probs)
+    if probs:
+        raise ManifestError(list(probs), where)
+    return out
+
+
+def faults_from_env() -> dict:
+    """Fault hooks from the environment variable PROCEDURALIZE_FAULTS (JSON); a manifest cannot carry them."""
+    raw = os.environ.get(FAULTS_ENV)
+    if not raw:
+        return {}
+    try:
+        doc = json.loads(raw)
+    except ValueError as exc:
+        raise ManifestError(f"not valid JSON ({exc})", FAULTS_ENV) from None
+    return parse_faults(doc, FAULTS_ENV)
+
+
 def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
-    """Connect to ``address`` or start a local Ray; returns True when this call started/connected it."""
+    """Connect to ``address`` or start a new local Ray bound to loopback; True when this call started/connected
+    it."""
     import ray
 
     if ray.is_initialized():
@@ -139,8 +171,10 @@ def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "WARNING"}
     if address:
         kw["address"] = address
-    elif num_cpus:
-        kw["num_cpus"] = int(num_cpus)
+    else:  # a fresh local instance (never someone's `ray start` found on this host), reachable from here only
+        kw.update(address="local", _node_ip_address=LOCAL_IP, dashboard_host=LOCAL_IP)
+        if num_cpus:
+            kw["num_cpus"] = int(num_cpus)
     ray.init(**kw)
     return True
 
@@ -197,10 +231,11 @@ class Scheduler:
     """Drives one job to completion on the connected Ray cluster."""
 
     def __init__(self, manifest: JobManifest, store: Store | None = None, progress: bool = True,
-                 mask_database: str | None = None):
+                 mask_database: str | None = None, faults: dict | None = None):
         import ray
 
         self.manifest = manifest
+        self.faults = parse_faults(faults) if faults is not None else faults_from_env()
         self.store = store or Store(manifest.database)
         self._own_store = store is None
         self.progress = progress
@@ -276,7 +311,8 @@ class Scheduler:
 
     def _call(self, m: _Material, stage: str, item: str) -> dict:
         return StageCall(job=self.manifest.name, root=str(self.manifest.output), material=m.spec.to_json(),
-                         stage=stage, item=item, debug=self.manifest.debug).to_dict()
+                         stage=stage, item=item, debug=self.faults, timeout=self.manifest.stage_timeout,
+                         memory_budget=self.manifest.memory_budget).to_dict()
 
     # -- actor pools
 
@@ -642,6 +678,12 @@ class Scheduler:
                          disable=not (self.progress and sys.stderr.isatty()))
         try:
             for spec in job.materials:
+                try:  # before anything is written for it: the folder must be this job's
+                    claims.claim(job.material_dir(spec), job.name, self.store.path)
+                except InputError as exc:
+                    m = self.mats[spec.name] = _Material(spec=spec, plan=[])
+                    self._fail_material(m, str(exc))
+                    continue
                 plan, err = self._plan(spec)
                 m = self.mats[spec.name] = _Material(spec=spec, plan=plan)
                 self.store.set_material(job.name, spec.name, "running")

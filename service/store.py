@@ -83,21 +83,43 @@ SCHEMA_VERSION = len(MIGRATIONS)
 class Store:
     """One connection to a job database; every write is one short transaction."""
 
-    def __init__(self, path: str | Path, timeout: float = BUSY_TIMEOUT_S, migrate_to: int = SCHEMA_VERSION):
+    def __init__(self, path: str | Path, timeout: float = BUSY_TIMEOUT_S, migrate_to: int = SCHEMA_VERSION,
+                 readonly: bool = False):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
+        self.readonly = readonly
+        if readonly and not self.path.is_file():
+            raise DatabaseError(f"{self.path}: no job database here")
+        if not readonly:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:  # read-only: the file is never created, migrated, switched to WAL or otherwise written
+            conn = sqlite3.connect(f"file:{self.path.resolve()}?mode=ro" if readonly else str(self.path),
+                                   timeout=timeout, check_same_thread=False, uri=readonly)
         except sqlite3.Error as exc:
             raise DatabaseError(f"{self.path}: cannot open the job database ({exc})") from None
         self.db = sqlite_utils.Database(conn)
-        self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
         try:
-            self._enable_wal()
-            self._migrate(migrate_to)
+            self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
+            if readonly:
+                self._check_readable()
+            else:
+                self._enable_wal()
+                self._migrate(migrate_to)
         except sqlite3.DatabaseError as exc:
             conn.close()
             raise DatabaseError(f"{self.path}: not a usable SQLite job database ({exc})") from None
+        except DatabaseError:
+            conn.close()
+            raise
+
+    def _check_readable(self) -> None:
+        """A read-only open must find a job database of a schema this code knows (nothing is migrated)."""
+        if self.path.stat().st_size == 0 or "meta" not in self.db.table_names():
+            raise DatabaseError(f"{self.path}: empty or not a proceduralize job database (no schema); "
+                                "run a job to create one")
+        v = self.version
+        if v != SCHEMA_VERSION:
+            raise DatabaseError(f"{self.path}: schema version {v}, this proceduralize reads {SCHEMA_VERSION}; "
+                                "rerun the job with this version (it migrates the file) to read it")
 
     # -- connection plumbing
 

@@ -61,5 +61,7 @@ def start_local_ray() -> None:
     import ray
 
     if not ray.is_initialized():
-        ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING",
+        # address="local": always a fresh instance (never a `ray start` cluster found on this host), on loopback
+        ray.init(address="local", _node_ip_address="127.0.0.1", num_cpus=2, include_dashboard=False,
+                 logging_level="WARNING",
                  runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})

@@ -54,7 +54,7 @@ def test_toml_resolves_paths_and_merges_defaults(tmp_path):
     assert brick.maps["albedo"].file == (tmp_path / "maps/brick_diff.jpg").resolve()
     assert brick.maps["roughness"].channel == "G"
     assert brick.normal_convention == "directx"
-    assert brick.working_size == (128, 128) and brick.seed == 7
+    assert brick.working_size == 128 and brick.seed == 7  # the longer side; aspect kept at load
     assert brick.decompose["scribbles"] == str((tmp_path / "maps/brick_scribble.png").resolve())
     assert brick.decompose["scribbles_source"] == "brick_scribble.png"
     assert brick.decompose["children"]["0"]["scribbles"] == str((tmp_path / "maps/mortar.png").resolve())
@@ -150,11 +150,12 @@ def test_bad_syntax_and_missing_file_are_manifest_errors(tmp_path):
         validate({"job": {"name": "j", "output": "o"}}, root=tmp_path)
 
 
-def test_spec_hash_tracks_results_not_debug_or_stage_choice(tmp_path):
+def test_spec_hash_tracks_results_not_timeout_or_stage_choice(tmp_path):
     base = {"job": {"name": "j", "output": "o"}, "materials": [{"name": "m", "albedo": "a.png"}]}
     h0 = validate(base, root=tmp_path).materials[0].spec_hash()
-    dbg = dict(base, debug={"sleep": {"stage": "load", "seconds": 1}})
-    assert validate(dbg, root=tmp_path).materials[0].spec_hash() == h0
+    timed = json.loads(json.dumps(base))
+    timed["job"]["stage_timeout"] = 60
+    assert validate(timed, root=tmp_path).materials[0].spec_hash() == h0
     staged = json.loads(json.dumps(base))
     staged["materials"][0]["stages"] = ["load"]
     assert validate(staged, root=tmp_path).materials[0].spec_hash() == h0

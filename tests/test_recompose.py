@@ -268,7 +268,11 @@ def test_determinism_and_config_errors():
     assert r1.params_after == r2.params_after and r1.history == r2.history
     assert proc.node("blend_root_albedo")["params"]["sigmas"] == [1.2, 1.2]  # the input is not modified
     r3 = optimise(proc, target, RecomposeConfig(iterations=2, optimizer="lbfgs", light_pool=8))
-    assert r3.loss_after <= r3.loss_before and len(r3.history) == 2
+    assert len(r3.history) == 2
+    # the reported loss is the loss of the material returned (recomputed independently from a fresh start),
+    # not merely the smaller of two numbers the optimiser compared
+    again = optimise(r3.material, target, RecomposeConfig(iterations=0, light_pool=8))
+    assert again.loss_before == pytest.approx(r3.loss_after, rel=1e-4)
     with pytest.raises(InputError, match="optimizer"):
         optimise(proc, target, optimizer="sgd")
     with pytest.raises(InputError, match="unknown keys"):

@@ -41,6 +41,9 @@ from .tree import MaskNode, root_node
 
 logger = logging.getLogger(__name__)
 
+#: an automatic split needs at least this many pixels (a smaller region stays one leaf)
+MIN_AUTO_SPLIT_PIXELS = 64
+
 METHODS = ("matting", "instances", "leaf")
 DEFAULT_SPEC: dict = {"method": "matting", "layers": 2}
 _MATTING_KEYS = {"layers": "layers", "scribbles": None, "scribbles_source": None, "structure": None,
@@ -187,6 +190,10 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
         return
     children_spec = {str(k): v for k, v in (spec.get("children") or {}).items()}
     if method == "matting":
+        if spec.get("scribbles") is None and int(np.count_nonzero(node.mask)) < MIN_AUTO_SPLIT_PIXELS:
+            logger.warning("%s: %d pixel(s) are too few to split automatically; kept as one leaf", node.id,
+                           int(np.count_nonzero(node.mask)))
+            return
         res = matte(fm, node.mask, spec.get("layers", 2), spec.get("scribbles"), _matting_config(spec), seed,
                     source=spec.get("scribbles_source"))
         node.method, node.meta = "matting", {**node.meta, **res.meta}
@@ -195,6 +202,10 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
                 logger.warning("%s: matting layer %d is empty; dropped", node.id, i)
                 continue
             node.children.append(MaskNode(id=f"{node.id}.{i}", mask=m, alpha=res.alphas[i]))
+        if len(node.children) < 2:  # a uniform region: one layer is no split (and no mask to fit)
+            logger.warning("%s: the split found a single layer (a uniform region); kept as one leaf", node.id)
+            node.children, node.method = [], "leaf"
+            return
     else:
         cfg = InstanceConfig(**{attr: spec[key] for key, attr in _INSTANCE_KEYS.items() if key in spec})
         res = split_instances(node.mask, fm.colour, cfg, seed)

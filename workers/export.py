@@ -47,22 +47,22 @@ def export_maps(maps: dict[str, np.ndarray], folder: str | Path, name: str = "ma
     for req in ("albedo", "normal", "roughness"):
         if req not in maps:
             raise InputError(f"export of {name!r}: map {req!r} missing (have {sorted(maps)})")
+    from .maps import output_file
+
     out = Path(folder)
+    base, nrm, orm, rough = (output_file(out, name, f"_{k}.png") for k in ("basecolor", "normal_gl", "orm",
+                                                                          "roughness"))
     out.mkdir(parents=True, exist_ok=True)
-    base = out / f"{name}_basecolor.png"
-    nrm = out / f"{name}_normal_gl.png"
-    orm = out / f"{name}_orm.png"
-    rough = out / f"{name}_roughness.png"
     write_image(base, linear_to_srgb(np.clip(maps["albedo"], 0, 1)), bits=bits)
     write_image(nrm, encode_normal(maps["normal"]), bits=bits)
     write_image(orm, pack_orm(maps["roughness"], maps.get("metallic")), bits=bits)
     write_image(rough, np.clip(maps["roughness"], 0, 1), bits=bits)
     height = None
     if "height" in maps:
-        height = out / f"{name}_height.png"
+        height = output_file(out, name, "_height.png")
         h = maps["height"]
         write_image(height, (h - h.min()) / max(float(h.max() - h.min()), 1e-8), bits=16)
-    mtlx = write_materialx(out / f"{name}.mtlx", name, base.name, nrm.name, rough.name,
+    mtlx = write_materialx(output_file(out, name, ".mtlx"), name, base.name, nrm.name, rough.name,
                            "metallic" in maps and orm.name or None) if materialx else None
     return ExportedFiles(out, base, nrm, orm, rough, height, mtlx)
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import base64
 import copy
 import json
+import re
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,14 @@ from .errors import GraphError
 FORMAT = "proceduralize/1.1"   # 1.1 adds "input_size" (scale 1 = the input's pattern size)
 NORMALISE_EPS = 1e-6   # floor of the mask sum a normalised blend divides by
 SUPPORTED_FORMATS = ("proceduralize/1", FORMAT)
+#: the most bytes one encoded array of a material file may inflate to (real ones are a few KB)
+MAX_ARRAY_BYTES = 16 * 2**20
+#: pattern scales ``evaluate`` accepts (1/64 .. 64): the scale multiplies every spatial size in the graph
+MIN_SCALE, MAX_SCALE = 1.0 / 64.0, 64.0
+#: the largest blur sigma (working-size pixels) a file may hold
+MAX_SIGMA = 1e4
+#: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
+MAP_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 
 
 # ----------------------------------------------------------------------------- arrays
@@ -58,13 +67,25 @@ def encode_array(a: np.ndarray, dtype: str = "float16") -> dict:
 
 
 def decode_array(obj: Any) -> np.ndarray:
-    """Decode an object written by :func:`encode_array` (plain lists are accepted too) to float32/int."""
+    """Decode an object written by :func:`encode_array` (plain lists are accepted too) to float32/int. The
+    declared size is checked against MAX_ARRAY_BYTES before anything is inflated, and inflation stops there."""
     if isinstance(obj, dict) and obj.get("__array__"):
         try:
-            raw = zlib.decompress(base64.b64decode(obj["data"]))
-            arr = np.frombuffer(raw, dtype=np.dtype(obj["dtype"])).reshape(obj["shape"])
+            dtype = np.dtype(obj["dtype"])
+            shape = [int(n) for n in obj["shape"]]
+            if dtype.kind not in "fiub" or any(n < 0 for n in shape) or len(shape) > 8:
+                raise ValueError(f"dtype {dtype} / shape {shape} not allowed")
+            nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+            if nbytes > MAX_ARRAY_BYTES:
+                raise ValueError(f"declares {nbytes / 2**20:.0f} MiB, more than the {MAX_ARRAY_BYTES >> 20} MiB "
+                                 "an array of a material file may hold")
+            z = zlib.decompressobj()
+            raw = z.decompress(base64.b64decode(obj["data"]), nbytes + 1)
+            if len(raw) != nbytes or z.unconsumed_tail:
+                raise ValueError(f"data does not match its declared shape {shape} ({dtype})")
+            arr = np.frombuffer(raw, dtype=dtype).reshape(shape)
         except Exception as exc:  # noqa: BLE001 - any corruption is a GraphError
-            raise GraphError(f"corrupt array in material file: {exc}") from exc
+            raise GraphError(f"corrupt array in material file: {exc}") from None
         return arr.astype(np.float32) if arr.dtype.kind == "f" else arr.copy()
     return np.asarray(obj, dtype=np.float32)
 
@@ -185,6 +206,8 @@ def gaussian_blur(x: np.ndarray, sigma: float) -> np.ndarray:
     """Periodic (wrap) Gaussian blur over the two spatial axes; sigma in output pixels."""
     if sigma <= 1e-3:
         return x
+    if sigma >= max(x.shape[0], x.shape[1]):  # the periodic blur is the mean to within exp(-2 pi^2) ~ 3e-9
+        return np.broadcast_to(x.mean(axis=(0, 1), keepdims=True), x.shape).astype(np.float32)
     s = (sigma, sigma, 0) if x.ndim == 3 else (sigma, sigma)
     return ndimage.gaussian_filter(x, s, mode="wrap").astype(np.float32)
 
@@ -198,8 +221,8 @@ class BlurNode:
 
     def validate(self, params: dict) -> None:
         s = params.get("sigma", 0.0)
-        if not isinstance(s, (int, float)) or not np.isfinite(s) or s < 0:
-            raise GraphError("blur.sigma must be a finite number >= 0")
+        if not isinstance(s, (int, float)) or isinstance(s, bool) or not np.isfinite(s) or not 0 <= s <= MAX_SIGMA:
+            raise GraphError(f"blur.sigma must be a number from 0 to {MAX_SIGMA:g}")
 
     def evaluate(self, params, inputs, ctx, node_id):
         return gaussian_blur(inputs["input"], float(params.get("sigma", 0.0)) * ctx.px_scale)
@@ -404,7 +427,7 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
             raise GraphError(f"{source}: node {n['id']!r}: 'params' and 'inputs' must be objects")
         try:
             t.validate(params)
-        except GraphError as exc:
+        except (GraphError, TypeError, ValueError, OverflowError) as exc:
             raise GraphError(f"{source}: node {n['id']!r}: {exc}") from None
         nodes[n["id"]] = {"id": n["id"], "type": n["type"], "params": params, "inputs": ins}
     for nid, n in nodes.items():
@@ -414,18 +437,28 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     if fmt == "proceduralize/1" and "input_size" in doc:
         raise GraphError(f"{source}: 'input_size' needs format {FORMAT!r} (format {fmt!r} draws scale 1 at the "
                          f"working size's pattern)")
-    mat = ProceduralMaterial(
-        nodes=nodes,
-        maps=maps,
-        seed=int(doc.get("seed", 0)),
-        working_size=tuple(doc.get("working_size", (512, 512))),
-        meta=doc.get("meta", {}),
-        input_size=_size_field(doc, "input_size", source),
-    )
+    seed = doc.get("seed", 0)
+    if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
+        raise GraphError(f"{source}: seed must be an integer from 0 to 2**63-1, got {seed!r}")
+    ws = doc.get("working_size", [512, 512])
+    if not (isinstance(ws, list) and len(ws) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                          and 1 <= v <= 32768 for v in ws)):
+        raise GraphError(f"{source}: working_size must be [W, H] with 1 <= W, H <= 32768, got {ws!r}")
+    meta = doc.get("meta", {})
+    if not isinstance(meta, dict):
+        raise GraphError(f"{source}: meta must be an object")
+    mat = ProceduralMaterial(nodes=nodes, maps=maps, seed=seed, working_size=(ws[0], ws[1]), meta=meta,
+                             input_size=_size_field(doc, "input_size", source))
     names = set()
     for i, m in enumerate(maps):
         if not isinstance(m, dict) or not isinstance(m.get("name"), str):
             raise GraphError(f"{source}: maps[{i}] needs a string 'name'")
+        if not MAP_NAME.match(m["name"]):  # map names become file names: never a path
+            raise GraphError(f"{source}: maps[{i}].name {m['name']!r} must be 1-32 lower-case letters, digits "
+                             "or '_' starting with a letter (e.g. albedo, normal, roughness, height, metallic)")
+        if m["name"] in names:
+            raise GraphError(f"{source}: maps[{i}].name {m['name']!r} appears twice")
+        _check_map_entry(m, f"{source}: maps[{i}]")
         if "node" in m:
             if m["node"] not in nodes:
                 raise GraphError(f"{source}: map {m['name']!r} refers to missing node {m['node']!r}")
@@ -437,6 +470,21 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
             raise GraphError(f"{source}: map {m['name']!r} derives from missing map {m['from_height']!r}")
     _check_acyclic(mat, source)
     return mat
+
+
+def _check_map_entry(m: dict, where: str) -> None:
+    """The optional fields of a map output: strength, tilt, convention, clamp."""
+    st = m.get("strength", 1.0)
+    if not isinstance(st, (int, float)) or isinstance(st, bool) or not np.isfinite(st) or abs(st) > 1e6:
+        raise GraphError(f"{where}.strength must be a finite number (|strength| <= 1e6), got {st!r}")
+    tilt = m.get("tilt", [0.0, 0.0])
+    if not (isinstance(tilt, (list, tuple)) and len(tilt) == 2 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in tilt)):
+        raise GraphError(f"{where}.tilt must be two finite numbers, got {tilt!r}")
+    if m.get("convention", "opengl") not in ("opengl", "directx"):
+        raise GraphError(f"{where}.convention must be 'opengl' or 'directx', got {m.get('convention')!r}")
+    if not isinstance(m.get("clamp", True), bool):
+        raise GraphError(f"{where}.clamp must be true or false")
 
 
 def _check_acyclic(mat: ProceduralMaterial, source: str) -> None:
@@ -467,6 +515,9 @@ def load(path: str | Path) -> ProceduralMaterial:
         raise GraphError(f"{p}: file not found") from None
     except OSError as exc:
         raise GraphError(f"{p}: cannot read ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise GraphError(f"{p}: not a UTF-8 text file ({exc.reason} at byte {exc.start}); is it a material.json?") \
+            from None
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -479,10 +530,14 @@ def save(mat: ProceduralMaterial, path: str | Path) -> Path:
     doc = mat.to_json()
     from_json(json.loads(json.dumps(doc)), str(path))
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_suffix(p.suffix + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-    tmp.replace(p)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+        tmp.replace(p)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True) if tmp.parent.is_dir() else None
+        raise GraphError(f"{p}: cannot write the material file ({exc.strerror or exc})") from None
     return p
 
 
@@ -516,8 +571,9 @@ def evaluate(
         mat = load(mat)
     elif isinstance(mat, dict):
         mat = from_json(mat)
-    if width < 1 or height < 1 or scale <= 0:
-        raise GraphError(f"bad evaluation size {width}x{height} or scale {scale}")
+    if width < 1 or height < 1 or not MIN_SCALE <= scale <= MAX_SCALE:
+        raise GraphError(f"bad evaluation size {width}x{height} or scale {scale} (scale must be from "
+                         f"{MIN_SCALE:g} to {MAX_SCALE:g})")
     ctx = EvalContext(width=int(width), height=int(height), scale=float(scale) * mat.pattern_unit,
                       seed=mat.seed if seed is None else int(seed), working_size=tuple(mat.working_size))
     out: dict[str, np.ndarray] = {}
@@ -546,7 +602,9 @@ def evaluate(
 def set_param(mat: ProceduralMaterial, path: str, value: Any) -> None:
     """Edit one parameter: ``path`` is ``node_id.param[.sub...]`` or ``seed``; numbers/lists as JSON values."""
     if path == "seed":
-        mat.seed = int(value)
+        if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**63):
+            raise GraphError(f"seed must be an integer from 0 to 2**63-1, got {value!r}")
+        mat.seed = value
         return
     parts = path.split(".")
     if len(parts) < 2:
@@ -569,7 +627,10 @@ def set_param(mat: ProceduralMaterial, path: str, value: Any) -> None:
                              f"(has: {sorted(cur)})")
         cur[last] = value
     t = NODE_TYPES[node["type"]]
-    t.validate(node["params"])
+    try:
+        t.validate(node["params"])
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise GraphError(f"node {parts[0]!r}: {exc}") from None
 
 
 Evaluator = Callable[[dict, dict, EvalContext, str], np.ndarray]

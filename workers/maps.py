@@ -53,6 +53,8 @@ class Material:
 # ----------------------------------------------------------------------------- reading
 
 DEFAULT_MAX_PIXELS = 64 * 1024 * 1024
+#: the smallest side the stages work at (filters, spectra and matting need a few pixels)
+MIN_WORKING_SIDE = 8
 _CHANNEL_LETTERS = {"R": 0, "G": 1, "B": 2, "A": 3}
 _BITS = {"uint8": 8, "int8": 8, "uint16": 16, "int16": 16, "half": 16, "uint32": 32, "int32": 32,
          "float": 32, "double": 64}
@@ -85,6 +87,19 @@ def _open_input(path: Path, max_pixels: int) -> "oiio.ImageInput":
         raise InputError(f"{path}: {spec.width}x{spec.height} = {npx} pixels exceeds the limit of {max_pixels} "
                          f"({max_pixels / 2**20:.0f} Mpx; raise max_pixels if the image is genuine)")
     return inp
+
+
+def image_header(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[int, int, int]:
+    """(width, height, channels) from an image file's header, without decoding its pixels."""
+    inp = _open_input(Path(path), max_pixels)
+    spec = inp.spec()
+    inp.close()
+    return int(spec.width), int(spec.height), int(spec.nchannels)
+
+
+def working_size_for(working_size: int | tuple[int, int] | None, w: int, h: int) -> tuple[int, int]:
+    """The (w, h) a material of w x h pixels is processed at (see load_material's ``working_size``)."""
+    return _target_size(working_size, w, h)
 
 
 def _channel_index(pick: Channel, names: tuple[str, ...], path: Path) -> int:
@@ -160,6 +175,17 @@ def inspect_image(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> dic
 
 
 # ----------------------------------------------------------------------------- writing
+
+_FILE_STEM = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+
+
+def output_file(folder: str | Path, stem: str, suffix: str) -> Path:
+    """``folder / (stem + suffix)`` for a name that comes from a file or a user (a map name, an export prefix):
+    letters, digits, '_', '.', '-', no '..', no separators, so the file always lands directly in ``folder``."""
+    if not isinstance(stem, str) or not _FILE_STEM.match(stem) or ".." in stem:
+        raise InputError(f"file name {stem!r}: must be 1-128 letters, digits, '_', '.', '-' (no path "
+                         f"separators, no '..'); it names a file inside {folder}")
+    return Path(folder) / f"{stem}{suffix}"
 
 
 def write_image(path: str | Path, array: np.ndarray, bits: int | str = 8) -> Path:
@@ -333,12 +359,17 @@ def normalize_vectors(n: np.ndarray) -> np.ndarray:
 def _target_size(working_size: int | tuple[int, int] | None, w: int, h: int) -> tuple[int, int]:
     """(w, h) to process at: an int sets the longer side (aspect kept); a pair is used as is."""
     if working_size is None:
+        if min(w, h) < MIN_WORKING_SIDE:
+            raise InputError(f"the maps are {w}x{h} pixels; the pipeline needs at least {MIN_WORKING_SIDE} on each "
+                             "side: set working_size to process them at a larger size")
         return w, h
     if isinstance(working_size, (int, np.integer)):
         n = int(working_size)
-        if n < 8:
-            raise InputError(f"working_size must be >= 8, got {n}")
-        return (n, max(1, round(h * n / w))) if w >= h else (max(1, round(w * n / h)), n)
+        if n < MIN_WORKING_SIDE:
+            raise InputError(f"working_size must be >= {MIN_WORKING_SIDE}, got {n}")
+        # the longer side is n, the aspect ratio kept (the shorter side at least MIN_WORKING_SIDE)
+        short = lambda a, b: max(MIN_WORKING_SIDE, round(a * n / b))  # noqa: E731
+        return (n, short(h, w)) if w >= h else (short(w, h), n)
     tw, th = (int(v) for v in working_size)
     if tw < 8 or th < 8:
         raise InputError(f"working_size must be >= 8x8, got {tw}x{th}")
@@ -392,7 +423,10 @@ def load_material(
             raise InputError(f"{s}: {key} map is {a.shape[1]}x{a.shape[0]} but the albedo {s0} is "
                              f"{a0.shape[1]}x{a0.shape[0]}; all maps must have the same size")
     h0, w0 = a0.shape[:2]
-    tw, th = _target_size(working_size, w0, h0)
+    try:
+        tw, th = _target_size(working_size, w0, h0)
+    except InputError as exc:
+        raise InputError(f"{s0}: {exc}") from None
 
     def fit(a: np.ndarray) -> np.ndarray:
         return resize_image(a, tw, th) if (tw, th) != (w0, h0) else a
@@ -453,7 +487,7 @@ def save_material(material: Material, folder: str | Path, bits: int | str = 8) -
             data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
         else:
             data, b = arr, hbits if key == "height" else bits
-        written[key] = write_image(out / f"{key}{ext}", data, bits=b)
+        written[key] = write_image(output_file(out, key, ext), data, bits=b)
     info = {"name": material.name, "height_scale": material.height_scale, "size": list(material.size),
             "albedo_colorspace": "srgb", "normal_convention": "opengl", "sources": material.sources,
             "files": {k: p.name for k, p in written.items()}}

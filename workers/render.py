@@ -129,14 +129,18 @@ def preview_lights(distance: float = LIGHT_DISTANCE) -> torch.Tensor:
 
 def preview_image(maps: dict[str, np.ndarray]) -> np.ndarray:
     """H x 2W x 3 sRGB image in [0, 1]: top light | side light, from numpy maps (albedo linear, normal OpenGL;
-    roughness defaults to 0.5, metallic optional)."""
-    if "albedo" not in maps or "normal" not in maps:
-        raise ValueError(f"preview_image needs 'albedo' and 'normal' maps, got {sorted(maps)}")
+    roughness defaults to 0.5, a missing normal map is flat, metallic optional)."""
+    if "albedo" not in maps:
+        raise ValueError(f"preview_image needs an 'albedo' map, got {sorted(maps)}")
     alb = _to_tensor(maps["albedo"])
     if alb.shape[-1] == 1:
         alb = alb.expand(-1, -1, 3)
     alb = alb[..., :3]
-    nrm = _to_tensor(maps["normal"])
+    if maps.get("normal") is not None:
+        nrm = _to_tensor(maps["normal"])
+    else:  # an albedo-only material is flat: every normal straight up
+        nrm = torch.zeros(alb.shape[:2] + (3,))
+        nrm[..., 2] = 1.0
     rough = _to_tensor(maps["roughness"])[..., :1] if maps.get("roughness") is not None else \
         torch.full(alb.shape[:2] + (1,), 0.5)
     met = _to_tensor(maps["metallic"])[..., :1] if maps.get("metallic") is not None else None
