@@ -474,9 +474,7 @@ def _check_before_ray(man, pptbf_db: str | None) -> None:
         if folder is not None and not (Path(folder) / "meta.json").is_file():
             raise InputError(f"{label} {folder}: not a PPTBF database folder (no meta.json); build one with "
                              "`proceduralize db rebuild --out DIR` or drop the option to use the bundled one")
-    if man.database.exists() and man.database.stat().st_size == 0:
-        raise InputError(f"{man.database}: the job database is an empty file; delete it or choose another "
-                         "job.database")
+    # an empty file is a database another job sharing it has just created: SQLite initialises it
     Store(man.database).close()
 
 

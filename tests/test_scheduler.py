@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from workers.errors import ManifestError
+
 from service.manifest import load_manifest, validate
 from service.pipeline import STAGES
 from service.scheduler import Scheduler
@@ -204,10 +206,12 @@ def test_killed_driver_resumes_without_recomputing_finished_stages(ray_session, 
 
 
 def test_two_jobs_at_once_share_one_database_safely(ray_session, materials_dir, tmp_path):
-    shared = tmp_path / "shared.db"
-    docs = [_doc(f"job{k}", [_material(n) for n in names], database=str(shared))
+    # one output folder (a job's database must lie inside its output folder), distinct materials
+    shared = tmp_path / "out" / "shared" / "shared.db"
+    docs = [{**d, "job": {**d["job"], "output": "out/shared"}}
+            for d in (_doc(f"job{k}", [_material(n) for n in names], database="shared.db")
             for k, names in enumerate((["castle_brick_broken_06", "rusty_metal_05"],
-                                       ["metal_plate_02", "coast_sand_rocks_02"]))]
+                                       ["metal_plate_02", "coast_sand_rocks_02"])))]
     reports: dict[int, object] = {}
 
     def go(k: int) -> None:
@@ -367,7 +371,7 @@ def test_sub_layer_mask_by_the_inpainting_variant(ray_session, materials_dir, tm
     nested tree recomposes (tree ids with dots become graph ids without) and evaluates."""
     doc = _doc("inp", [_material("castle_brick_broken_06")],
                stages=["load", "decompose", "noise", "masks", "recompose"], pptbf_database=str(tiny_pptbf_db))
-    doc["defaults"].update(decompose={"mode": "auto", "layers": 2, "children": {"0": {"layers": 2}}},
+    doc["defaults"].update(decompose={"mode": "auto", "layers": 2, "structure": False, "children": {"0": {"layers": 2}}},
                            masks={"max_evals": 8, "rounds": 1, "time_budget_s": 10.0, "incomplete": "inpaint"},
                            recompose={"iterations": 2})
     man, report = _run(doc, tmp_path)
@@ -384,9 +388,9 @@ def test_sub_layer_mask_by_the_inpainting_variant(ray_session, materials_dir, tm
     mat = graph.load(mdir / "recompose" / "material.json")
     assert {"blend_root_albedo", "blend_root_0_albedo"} <= set(mat.nodes)
     assert graph.evaluate(mat, 48, 32, seed=3)["albedo"].shape == (32, 48, 3)
-    doc["defaults"]["masks"]["incomplete"] = "guess"   # a bad value fails the material with a clear error
-    _, bad = _run(dict(doc, job=dict(doc["job"], name="inp2", output="out/inp2")), tmp_path)
-    assert bad.exit_code == 1 and "masks.incomplete" in str(bad.errors)
+    doc["defaults"]["masks"]["incomplete"] = "guess"   # a bad value is refused at validation, naming the field
+    with pytest.raises(ManifestError, match=r"masks\.incomplete: 'guess' is not one of the known values"):
+        _run(dict(doc, job=dict(doc["job"], name="inp2", output="out/inp2")), tmp_path)
 
 
 def _free_port() -> int:

@@ -397,16 +397,19 @@ def test_read_commands_never_write(tmp_path, capsys):
     assert z.stat().st_size == 0 and sorted(p.name for p in tmp_path.iterdir()) == ["zero.db"]
 
 
-def test_corrupt_database_and_missing_pptbf_db_refused_before_ray(tmp_path, capsys):
+def test_corrupt_database_and_missing_pptbf_db_refused_before_ray(tmp_path, capsys, monkeypatch):
     m = manifest(tmp_path / "m.json", "c", "out", [{"name": "t", "albedo": "a.png"}])
     (tmp_path / "out").mkdir()
     (tmp_path / "out/proceduralize.db").write_bytes(b"SQLite format 3\0" + bytes(range(256)) * 16)
     import ray
 
-    assert main(["run", str(m)]) == 2 and not ray.is_initialized()
+    started = []   # Ray may already run in this test session: record any attempt to start or join one
+    monkeypatch.setattr(ray, "init", lambda *a, **k: started.append(k))
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    assert main(["run", str(m)]) == 2 and not started
     assert "not a usable SQLite job database" in capsys.readouterr().err
     (tmp_path / "out/proceduralize.db").unlink()
-    assert main(["run", str(m), "--pptbf-db", str(tmp_path / "nodb")]) == 2 and not ray.is_initialized()
+    assert main(["run", str(m), "--pptbf-db", str(tmp_path / "nodb")]) == 2 and not started
     assert "--pptbf-db" in capsys.readouterr().err
 
 
