@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -209,7 +209,7 @@ class _Starts:
     history: list[float]
     query: tuple | None = None          # (best database match, its complement)
     loss_query: float = float("nan")
-    matches: list = None                # database matches (params, complement) for transplants
+    matches: list = field(default_factory=list)   # database matches (params, complement) for transplants
 
 
 def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: MaskFitConfig,
@@ -324,7 +324,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
-        trans, t_losses = _transplants(loss, lat, kept[0], st.matches or [], left // 5,
+        trans, t_losses = _transplants(loss, lat, kept[0], st.matches, left // 5,
                                        t0 + 0.3 * (stage_deadline - t0))
         history += list(np.minimum.accumulate([history[-1]] + t_losses)[1:])
         n0, left = n0 + len(t_losses), left - len(t_losses)
