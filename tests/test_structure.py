@@ -98,3 +98,24 @@ def test_real_first_split_has_the_relief_lattice(name, materials_dir):
     assert per <= 0.10 and ang <= 3.0
     if name == "castle_brick_broken_06":
         assert iou >= 0.8
+
+
+@pytest.mark.parametrize("name,first", [("castle_brick_broken_06", "colour"), ("metal_plate_02", "relief")])
+def test_real_first_split_at_the_job_working_size(name, first, materials_dir):
+    """At the README job's 256 px the castle's mortar is 1-2 px: its relief cut is speckle (regularity 0.06)
+    while the colour split still shows the bricks (0.07), so the colour split is kept; the plate's seams (about
+    3 px) stay a relief split (0.55). Either way the first split's layers carry the input's lattice: period
+    within 10 % of the 512 px reference mask's, halved."""
+    from workers.maps import load_material, read_image
+
+    f = real_material_files(name)
+    m = load_material(f["albedo"], f["normal"], f["roughness"], roughness_channel=f["roughness_channel"],
+                      working_size=256)
+    root = decompose(m, {"layers": 2}, seed=1)
+    assert ("structure" in root.meta) == (first == "relief")
+    assert ("structure_rejected" in root.meta) == (first == "colour")
+    ref = read_image(Path(__file__).parent / "data" / "structure_masks" / f"{REFERENCES[name]}.png")[..., 0] > 0.5
+    ref_period = L.analyse_lattice(ref).period / 2
+    lat = L.analyse_lattice(root.children[0].mask)
+    print(f"{name}: first split {first}, {lat.kind} period {lat.period} px (reference {ref_period:.2f} px)")
+    assert lat.kind == "2d" and abs(lat.period - ref_period) <= 0.10 * ref_period

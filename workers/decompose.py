@@ -15,8 +15,10 @@ min_side, distance_threshold, outlier_z, crop_size. ``spec=None`` means ``{"meth
 (an automatic two-layer split of the whole material; its leaves are then sub-materials).
 
 Structure first: an automatic (scribble-free) matting split of the root first looks for a layout in the relief
-(height from normals, normal tilt) and then the albedo (workers.structure). When one is found, the root's split
-is that layout: "root.0" = the network (mortar, grout, seams, edges), "root.1" = the cells; with more than 2
+(height from normals, normal tilt) and then the albedo (workers.structure). When one is found and its cut shows
+the layout at least as strongly as the colour split's layers (workers.structure.layout_rank: a 2-D lattice, then
+regularity; at a small working size a 1-2 px mortar cut turns to speckle while the colours still show the
+bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges), "root.1" = the cells; with more than 2
 layers (or "auto"), the cells are split again by colour matting (layers - 1, or "auto") as "root.1.*", so
 stains and colour variation become nested splits (with 2 layers they stay in the cells' noise). Children specs
 apply to root.0 / root.1 as usual. Scribbles override it; ``structure = false`` turns it off.
@@ -37,6 +39,8 @@ import numpy as np
 from .errors import InputError, ManifestError
 from .instances import InstanceConfig, split_instances
 from .matting import MAX_LAYERS, FeatureMaps, MattingConfig, feature_maps, matte
+from .lattice import analyse_lattice
+from .structure import find_structure, layout_rank
 from .tree import MaskNode, root_node
 
 logger = logging.getLogger(__name__)
@@ -256,13 +260,40 @@ def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode
     root = root_node(*albedo.shape[:2])
     root.meta["features"] = fm.names
     if spec.get("method", "matting") == "matting" and spec.get("scribbles") is None and spec.get("structure", True):
-        from .structure import find_structure
-
         d = maps.maps() if hasattr(maps, "maps") and callable(maps.maps) else maps
         normal = d.get("normal")
         split = find_structure(albedo, height, None if normal is None else np.asarray(normal, np.float32))
         if split is not None:
-            _structure_first(root, spec, split, fm, seed)
+            _split(root, spec, fm, seed)
+            colour = _colour_layout(root)
+            if not _colour_shows_more(colour[0], layout_rank(split.lattice)):
+                root.children, root.meta = [], {"features": fm.names}
+                _structure_first(root, spec, split, fm, seed)
+            else:
+                logger.info("structure: the colour split shows the layout more (%s vs %s); kept", colour[1],
+                            layout_rank(split.lattice))
+                root.meta["structure_rejected"] = {**split.describe(), "colour_rank": list(colour[0])}
             return root
     _split(root, spec, fm, seed)
     return root
+
+
+#: the colour split replaces a found structural split only when its layout is this much more regular: the relief
+#: cut is preferred (stains and colour variation stay out of it) unless it has clearly lost the layout
+COLOUR_MARGIN = 1.15
+
+
+def _colour_shows_more(colour: tuple[bool, float], structure: tuple[bool, float]) -> bool:
+    return colour[0] > structure[0] or (colour[0] == structure[0] and colour[1] > COLOUR_MARGIN * structure[1])
+
+
+def _colour_layout(root: MaskNode) -> tuple[tuple[bool, float], str]:
+    """The strongest layout among the root's colour-split layers: (rank, layer id). A relief cut too fine for the
+    working size (1-2 px mortar) loses its lattice to speckle while the colours still show the bricks; the first
+    split is the one that shows the layout most."""
+    best: tuple[tuple[bool, float], str] = ((False, -1.0), "")
+    for child in root.children:
+        rank = layout_rank(analyse_lattice(np.asarray(child.mask) > 0.5))
+        if rank > best[0]:
+            best = (rank, child.id)
+    return best

@@ -88,6 +88,12 @@ def structure_sources(albedo: np.ndarray | None, height: np.ndarray | None, norm
     return {"relief": relief, "albedo": colour}
 
 
+def layout_rank(lat: Lattice) -> tuple[bool, float]:
+    """How strongly a mask shows a layout: a 2-D lattice before rows, then the autocorrelation's regularity.
+    Orders the candidate cuts here and, in workers.decompose, the structural split against the colour split."""
+    return (lat.kind == "2d", float(lat.regularity) if lat.kind != "none" else -1.0)
+
+
 def _cut(src: np.ndarray, share: float, median: int) -> np.ndarray:
     m = src > np.quantile(src, 1.0 - share)
     return ndimage.median_filter(m, median, mode="wrap") if median > 1 else m
@@ -122,7 +128,7 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
                               "regularity": round(float(lat.regularity), 4),
                               "significance": round(float(lat.significance), 3),
                               "period_full": None if lat.period is None else round(lat.period / k, 2)})
-                rank = (lat.kind == "2d", lat.regularity)
+                rank = layout_rank(lat)
                 if lat.kind != "none" and (best is None or rank > best[0]):
                     best = (rank, name, share)
         if best is not None:
