@@ -318,6 +318,25 @@ def test_refit_random_parameters_reaches_truth_floor(tiny_index):
     assert np.mean(ratios) < np.mean(wrong)
 
 
+def test_query_path_with_the_vgg19_loss(tiny_index):
+    """loss = "vgg19": the re-rank, search and validation use the VGG-19 Gram + layout distance; the reported
+    loss is that distance of the mask the fit renders (recomputed here), it beats a white-noise mask of the
+    target's density, and a fresh realisation of the fit is nearer the target than unrelated parameters'."""
+    from workers.layout_fit import GramMaskLoss
+
+    p, o, _, target = _random_targets(np.random.default_rng(5), 1)[0]
+    fit = fit_pptbf_mask(target, tiny_index, config=MaskFitConfig(max_evals=40, time_budget_s=120, lattice=False,
+                                                                  loss="vgg19", rerank_pool=8))
+    assert fit.evaluations <= 40
+    judge = GramMaskLoss(target)
+    assert judge.of_mask(fit.render()) == pytest.approx(fit.loss_final, rel=1e-3, abs=1e-6)
+    noise = np.random.default_rng(0).random(target.shape) < target.mean()
+    assert fit.loss_final < judge.of_mask(noise)
+    assert realisation_distance(judge, fit.params, fit.complement) < realisation_distance(judge, o)
+    with pytest.raises(InputError, match="masks.loss"):
+        MaskFitConfig(loss="lbp")
+
+
 def test_multi_start_fit_respects_budget(tiny_index):
     """starts=3 with structure moves: the explored starts and the validation count against max_evals, the
     history has one (monotone) entry per evaluation, and the result is never worse than the query."""

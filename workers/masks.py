@@ -87,6 +87,12 @@ class MaskFitConfig:
     structure_moves: bool = False
     realisations: int = 1
     validate: int = 2
+    loss: str = "descriptor"      # query path: the loss of the re-rank, the search and the validation:
+    #                               "descriptor" (the database's descriptor distance) or "vgg19" (pretrained
+    #                               VGG-19 Gram + layout distance, workers.layout_fit.GramMaskLoss, the paper's
+    #                               loss); both cost about 0.5 s an evaluation at 128 px on one thread, and on
+    #                               rusty_metal_05's rust both return the same entry (Gram distance 0.54 at 256 px)
+    rerank_pool: int = 12         # "vgg19": database entries per polarity re-ranked by that loss (>= top_k)
     lattice: bool = True          # masks with a lattice (bricks, tiles): lattice-first fit with the VGG-19 loss
     layout_size: int = 256        # fit width (px) of that path (the mask's own when smaller)
     lattice_starts: int = 14      # tiling/layout matches of the lattice tried as starts (each in both polarities)
@@ -96,6 +102,12 @@ class MaskFitConfig:
     def __post_init__(self) -> None:
         if self.incomplete not in ("known", "inpaint"):
             raise InputError(f"masks.incomplete must be 'known' or 'inpaint', got {self.incomplete!r}")
+        if self.loss not in LOSSES:
+            raise InputError(f"masks.loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+
+
+#: the query path's losses (MaskFitConfig.loss)
+LOSSES = ("vgg19", "descriptor")
 
 
 @dataclass
@@ -405,11 +417,12 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
     t0 = time.perf_counter()
     target, valid_s = _prepare_target(mask, valid, cfg.fit_size or _index_resolution(index) or 128)
     h, w = target.shape
-    q_pos = index.query(target, k=cfg.top_k, valid=valid_s)
-    q_neg = index.query(~target, k=cfg.top_k, valid=valid_s)
+    k = max(cfg.top_k, cfg.rerank_pool) if cfg.loss == "vgg19" else cfg.top_k
+    q_pos, q_neg = index.query(target, k=k, valid=valid_s), index.query(~target, k=k, valid=valid_s)
     if not q_pos and not q_neg:
         raise InputError("index: the PPTBF database returned no match (is it empty?)")
-    loss = MaskLoss(target, index, valid_s, shift=cfg.shift, realisations=cfg.realisations)
+    loss = _vgg_loss(target, valid_s, cfg) if cfg.loss == "vgg19" else \
+        MaskLoss(target, index, valid_s, shift=cfg.shift, realisations=cfg.realisations)
     # "the query result alone": the index's nearest entry over both polarities, rendered verbatim
     q_compl = bool(q_neg and (not q_pos or q_neg[0].distance < q_pos[0].distance))
     q_best = (q_neg if q_compl else q_pos)[0]
@@ -472,6 +485,15 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
                    meta={"white_fraction": loss.white, "query_distance": float(q_best.distance),
                          "query_complement": q_compl, "validation_loss": val,
                          "rerank_loss": float(min((s[0] for s in scored), default=loss_query))})
+
+
+def _vgg_loss(target: np.ndarray, valid: np.ndarray | None, cfg: MaskFitConfig) -> MaskLoss:
+    """The query path's VGG-19 Gram + layout loss (the paper's texture loss): the database descriptor finds the
+    starts, but compressed to a sketch of the Grams plus LBP and spectrum it can prefer a finer speckle than a
+    rust target's blotches."""
+    from .layout_fit import GramMaskLoss
+
+    return GramMaskLoss(target, valid, shift=cfg.shift, realisations=cfg.realisations)
 
 
 def _validate(loss: MaskLoss, cands: list, n: int):
