@@ -489,6 +489,11 @@ def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, w
     return out
 
 
+#: cell aspects tried along rows (a one-directional repeat does not fix the cells' length; the screening of
+#: workers.layout_fit picks among them)
+ROW_ASPECTS = (1.0, 1.5, 2.0, 3.0, 0.75, 0.5)
+
+
 def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> list[LatticeMatch]:
     """Tiling families and layouts whose cell lattice equals the target's within `max_error` (relative), best
     first, one per (family, resolution/aspect/rotation) found."""
@@ -499,8 +504,8 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         v = np.array(lat.vectors[0])
         alpha = math.atan2(v[0], v[1])            # domain y axis (rows stacked along it) -> v
         r = float(np.linalg.norm(v))
-        aspects = (1.0, 2.0, 3.0) if lat.row_vector is None else \
-            (float(np.linalg.norm(lat.row_vector)) / r, 1.0, 2.0)
+        aspects = ROW_ASPECTS if lat.row_vector is None else \
+            (float(np.linalg.norm(lat.row_vector)) / r,) + ROW_ASPECTS
         for aspect in aspects:
             for t in ROW_FAMILIES + (4, 0):
                 out.append(LatticeMatch(t, r, aspect, (alpha / math.pi) % 2.0, 0.0))

@@ -5,7 +5,8 @@ wall they return streaks or speckle at another period, and the old descriptor (L
 spectrum) even scores that speckle better than a hand-built wall. Here the layout is measured first and kept:
 
 1. ``workers.lattice`` measures the target's lattice and turns it into starting vectors: tiling families whose
-   cells sit on that lattice, with period, aspect and rotation solved for, and a crisp cellular window; the
+   cells sit on that lattice, with period, aspect and rotation solved for, and a crisp cellular window (up to
+   60 layouts in both polarities, screened on a half-size copy of the target, the best 14 kept); the
    database's nearest entries (both polarities) join them as further starts, and so do transplants: the best
    lattice starts' placement of cells (tiling, period, rotation, aspect, jitter, distortion) with a database
    entry's look (cell window and features), for looks the crisp template cannot express.
@@ -13,8 +14,11 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    mask, the paper's texture loss) plus an autocorrelation (layout) distance, at the target's resolution (up to 256 px), rendered there and area-averaged
    by an integer factor to the loss resolution (128 px for a 256 px mask), so 2-3 px mortar lines survive as
    grey lines instead of vanishing in a binary downsample.
-3. From the best lattice start the layout (tiling, period, rotation, aspect) is frozen while the window (jitter,
-   sector count, larp, norm, smoothness, blend, sigma; window shape and mixture by sweep) is fitted; then every
+3. From the best lattice start the layout (tiling, period, rotation, aspect) is frozen while the window is
+   fitted: a grid over sector count (2^arity), larp and smoothness (the sector count is a rounded step a local
+   search cannot move: on a square grid with 32 sectors it alone took the fresh-realisation Gram ratio from
+   6.7 to 1.2), then jitter, larp, norm, smoothness, blend, sigma by local search (window shape and mixture by
+   sweep); then every
    entry is freed for a final polish with small steps.
 4. The candidates (polished, layout-fixed, best start, best database entry) are compared on fresh realisations;
    the best there is returned.
@@ -23,6 +27,7 @@ A target without a lattice keeps the query-and-optimise path of ``workers.masks`
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -38,7 +43,7 @@ from .errors import InputError
 from .inpaint import masked_autocorrelation
 from .lattice import Lattice, pptbf_starts, radial_profile
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
-from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate
+from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
 
 logger = logging.getLogger(__name__)
 
@@ -96,8 +101,9 @@ class GramMaskLoss(MaskLoss):
 
     def __init__(self, target: np.ndarray, valid: np.ndarray | None = None, *, shift=(0.0, 0.0),
                  factor: int = 1, realisations: int = 1, extractor: GramExtractor | None = None,
-                 structure_weight: float = STRUCTURE_WEIGHT) -> None:
+                 structure_weight: float = STRUCTURE_WEIGHT, pixel_scale: float = 1.0) -> None:
         self.target = target
+        self.pixel_scale = float(pixel_scale)
         self.valid = valid
         self.index = None
         self.shift = tuple(shift)
@@ -149,22 +155,29 @@ class GramMaskLoss(MaskLoss):
 
 
 #: coarse grid over the cell shape tried before the window stage's local search (larp: straight to round
-#: borders; smoothness: polygon to curved cells)
-WINDOW_GRID = {"window_larp": (0.0, 0.5, 1.0), "window_smoothness": (0.0, 0.5, 1.0)}
+#: borders; smoothness: polygon to curved cells; arity: 2^arity sectors of the cell border, which the local
+#: search cannot move, being a rounded step)
+WINDOW_GRID = {"window_arity": (3.0, 4.0, 5.0), "window_larp": (0.0, 0.5, 1.0), "window_smoothness": (0.0, 0.5, 1.0)}
 
 
-def _window_grid(budget: Budget, x0: np.ndarray) -> np.ndarray:
-    """Best vector of the WINDOW_GRID around x0 (x0 included); the budget keeps the best ever."""
-    best, best_loss = np.array(x0, np.float64), budget(x0)
-    (na, va), (nb, vb) = WINDOW_GRID.items()
-    for a in va:
-        for b in vb:
-            p = np.array(x0, np.float64)
-            p[pp.PARAM_INDEX[na]], p[pp.PARAM_INDEX[nb]] = a, b
-            v = budget(p)
-            if v < best_loss:
-                best, best_loss = p, v
-    return best
+def _window_grid(budgets: list[Budget], x0: np.ndarray) -> None:
+    """Every WINDOW_GRID point around x0 (x0 first, then the nearest points: a grid cut short by the budget has
+    seen the start's neighbourhood) under each budget (one per polarity), point by point; the budgets keep
+    their best."""
+    names = list(WINDOW_GRID)
+    here = np.array([x0[pp.PARAM_INDEX[n]] for n in names]) / np.array([max(WINDOW_GRID[n]) for n in names])
+    grid = sorted(itertools.product(*WINDOW_GRID.values()),
+                  key=lambda v: float(np.abs(np.array(v) / np.array([max(WINDOW_GRID[n]) for n in names])
+                                             - here).sum()))
+    points = [np.array(x0, np.float64)]
+    for values in grid:
+        p = np.array(x0, np.float64)
+        for name, v in zip(names, values):
+            p[pp.PARAM_INDEX[name]] = v
+        points.append(p)
+    for p in points:
+        for b in budgets:
+            b(p)
 
 
 #: a candidate keeps the target's layout when a fresh realisation's lattice is within these of the target's
@@ -194,11 +207,19 @@ def _keeps_lattice(loss: GramMaskLoss, lat: Lattice, cand: tuple) -> bool:
     return True
 
 
-def _lattice_gate(loss: GramMaskLoss, lat: Lattice, cands: list, at_most: int | None = None) -> list:
-    """The candidates (in order) that keep the target's lattice, checking at most `at_most` of them. The loss is
-    a texture statistic: on a noisy real wall it can prefer a finer grid or loose rows to the wall's own
-    courses (castle_brick_broken_06: the picture says otherwise), so the layout is checked on its own."""
-    return [c for c in cands[:at_most] if _keeps_lattice(loss, lat, c)]
+def _lattice_gate(loss: GramMaskLoss, lat: Lattice, cands: list, at_most: int | None = None,
+                  first: bool = False) -> list:
+    """The candidates (in order) that keep the target's lattice, checking at most `at_most` of them (`first`:
+    stop at the first that does; each check renders two realisations). The loss is a texture statistic: on a
+    noisy real wall it can prefer a finer grid or loose rows to the wall's own courses
+    (castle_brick_broken_06: the picture says otherwise), so the layout is checked on its own."""
+    out = []
+    for c in cands[:at_most]:
+        if _keeps_lattice(loss, lat, c):
+            out.append(c)
+            if first:
+                break
+    return out
 
 
 @dataclass
@@ -210,6 +231,50 @@ class _Starts:
     query: tuple | None = None          # (best database match, its complement)
     loss_query: float = float("nan")
     matches: list = field(default_factory=list)   # database matches (params, complement) for transplants
+    screened: int = 0                   # lattice layouts scored on the reduced copy (not in the evaluations)
+    screen_seconds: float = 0.0
+
+
+#: the screening loss sees the target at this scale (a quarter of the pixels; about 0.15 s an evaluation at 256
+#: px against 0.37 s at full size) and may use at most this share of the fit's time
+SCREEN_SCALE, SCREEN_SHARE = 0.5, 0.15
+
+
+def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice, cfg: MaskFitConfig,
+                      shift, deadline: float) -> tuple[list[tuple[np.ndarray, bool]], int]:
+    """(params, complement) of the lattice's layouts to score at full size. Up to cfg.lattice_screen layouts that
+    put cells on the lattice (each in both polarities: a cellular window is high inside cells, a white network
+    needs the complement, and real masks are often broken networks on both sides) are scored on a reduced copy
+    of the target and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a herringbone or a
+    pavement is often far down the list of matches, after square grids and bonds at several supercells) shows
+    at half size already, for a quarter of the cost. At most max(cfg.lattice_starts, cfg.max_evals / 2) are
+    screened. Returns the kept starts and the number of screening evaluations."""
+    h, w = target.shape
+    pols = (bool(lat.network_is_white), not lat.network_is_white)
+    cands = [(p, c) for p in pptbf_starts(lat, w, max_matches=max(cfg.lattice_screen, cfg.lattice_starts))
+             for c in pols]
+    keep = cfg.lattice_starts
+    cands = cands[:max(keep, cfg.max_evals // 2)]
+    if len(cands) <= keep or min(h, w) * SCREEN_SCALE < 32:
+        return cands[:keep], 0
+    sw, sh = int(round(w * SCREEN_SCALE)), int(round(h * SCREEN_SCALE))
+    small_valid = None if valid is None else downsample_mask(valid, sw, sh)
+    screen = GramMaskLoss(downsample_mask(target, sw, sh), small_valid, shift=shift,
+                          factor=loss_factor(sw, int(LOSS_WIDTH * SCREEN_SCALE)), pixel_scale=SCREEN_SCALE)
+    scored, n = [], 0
+    for i, (p, c) in enumerate(cands):
+        if time.perf_counter() > deadline:
+            scored.append((np.inf, i, p, c))
+            continue
+        scored.append((screen(screen.with_threshold(p, c), c), i, p, c))
+        n += 1
+    scored.sort(key=lambda s: (s[0], s[1]))
+    return [(p, c) for _, _, p, c in scored[:keep]], n
+
+
+#: database entries per polarity scored as starts on a mask with a lattice (a noisy entry renders slowly and
+#: rarely wins there; the top_k all serve as transplant looks)
+DATABASE_STARTS = 3
 
 
 def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: MaskFitConfig,
@@ -218,15 +283,18 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
     needs the complement, but real masks are often broken networks on both sides) and the database's nearest
     entries (both polarities, threshold from the target)."""
     out = _Starts([], [])
-    starts = [(p, c, "lattice") for p in pptbf_starts(lat, target.shape[1], max_matches=cfg.lattice_starts)
-              for c in (bool(lat.network_is_white), not lat.network_is_white)]
+    t0 = time.perf_counter()
+    layouts, out.screened = _screened_layouts(target, valid, lat, cfg, loss.shift, t0 + SCREEN_SHARE * cfg.time_budget_s)
+    out.screen_seconds = time.perf_counter() - t0
+    starts = [(p, c, "lattice") for p, c in layouts]
     matches = []
     if index is not None:
         for compl in (False, True):
-            for mt in index.query(~target if compl else target, k=cfg.top_k, valid=valid):
+            for i, mt in enumerate(index.query(~target if compl else target, k=cfg.top_k, valid=valid)):
                 out.query = out.query or (mt, compl)
                 matches.append((np.asarray(mt.params, np.float64), compl))
-                starts.append((matches[-1][0], compl, "database"))
+                if i < DATABASE_STARTS:     # all of them lend their look to transplants
+                    starts.append((matches[-1][0], compl, "database"))
 
     def score(batch) -> None:
         for p, compl, kind in batch:
@@ -248,6 +316,12 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
 #: entries a transplant takes from the lattice start (where the cells are); the rest (cell shape, features)
 #: comes from a database entry
 PLACEMENT = LAYOUT + ("jitter", "distortion_base", "distortion_amplitude", "distortion_frequency")
+
+
+#: shares of the time left (before validation) given to the transplants, then to the window stage (the polish
+#: has the rest): the window stage's grid over the cell shape needs it most (a square grid's 32-sector cells:
+#: fresh-realisation Gram ratio 6.7 -> 1.2)
+TRANSPLANT_SHARE, WINDOW_SHARE = 0.2, 0.7
 
 
 def transplant(placement: np.ndarray, appearance: np.ndarray) -> np.ndarray:
@@ -272,22 +346,33 @@ def _transplants(loss: "GramMaskLoss", lat: Lattice, placement: tuple, matches: 
         out.append((loss(p, compl), compl, p, "transplant"))
     losses = [c[0] for c in out]
     out.sort(key=lambda c: c[0])
-    return _lattice_gate(loss, lat, out, at_most=3), losses
+    return _lattice_gate(loss, lat, out, at_most=3, first=True), losses
 
 
 def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
-                  cfg: MaskFitConfig, seed: int) -> Budget:
-    """Layout frozen: the cell-shape grid, then the window entries by local search and sweeps."""
+                  cfg: MaskFitConfig, seed: int, network_known: bool = False) -> tuple[Budget, bool, int, list[float]]:
+    """Layout frozen: the cell-shape grid, in both polarities unless the lattice analysis knows which side is the
+    network (the crisp template may prefer the complement that the target's own cell shape does not: a
+    pavement with round 16-sector cells), then the window entries by
+    local search and sweeps in the better one. Returns (that polarity's budget, its complement, the
+    evaluations of both, the history of both)."""
     own, compl, x0, _ = start
-    b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
-    b.seed(x0, own)
+    compl = bool(compl)
+    pols = (compl,) if network_known else (compl, not compl)
+    budgets = {c: Budget(lambda q, c=c: loss(q, c), max(0, max_evals // len(pols)), deadline) for c in pols}
+    budgets[compl].seed(x0, own)
     try:
-        x0 = _window_grid(b, x0)
+        _window_grid([budgets[c] for c in pols], x0)
     except BudgetExhausted:
         pass
-    optimise(b.loss, x0, width, OptSettings(rounds=3, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.15,
-                                            seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
-    return b
+    c = min(budgets, key=lambda k: budgets[k].best_loss)
+    b = budgets[c]
+    other = budgets.get(not c, Budget(b.loss, 0, deadline))
+    b.max_evals = max(0, max_evals - other.evaluations)
+    optimise(b.loss, b.best_params, width, OptSettings(rounds=3, max_evals=b.max_evals, algorithm=cfg.algorithm,
+                                                       step=0.15, seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
+    history = [v for k in pols for v in budgets[k].history]
+    return b, c, b.evaluations + other.evaluations, history
 
 
 def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,
@@ -316,31 +401,36 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     logger.info("layout fit: %d starts, best lattice start %.4f, best overall %.4f (%s)", len(scored),
                 min((s[0] for s in scored if s[3] == "lattice"), default=float("nan")), scored[0][0], scored[0][3])
     left = max(0, cfg.max_evals - n0 - reserve)
-    per_eval = (time.perf_counter() - t0) / max(1, n0)
+    per_eval = (time.perf_counter() - t0 - st.screen_seconds) / max(1, n0)
     stage_deadline = deadline - reserve * per_eval * 2
     cands = [(s[0], s[1], s[2], s[3], True) for s in scored[:2]]
     # window stage from the best start that keeps the lattice (else the best lattice start, else the best)
-    kept = _lattice_gate(loss, lat, scored, at_most=GATE_CHECKS)
+    kept = _lattice_gate(loss, lat, scored, at_most=GATE_CHECKS, first=True)
     lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
+        now = time.perf_counter()
         trans, t_losses = _transplants(loss, lat, kept[0], st.matches, left // 5,
-                                       t0 + 0.3 * (stage_deadline - t0))
+                                       now + TRANSPLANT_SHARE * (stage_deadline - now))
         history += list(np.minimum.accumulate([history[-1]] + t_losses)[1:])
         n0, left = n0 + len(t_losses), left - len(t_losses)
-        if trans and trans[0][0] < lat_best[0]:
-            lat_best = trans[0]
+        if trans:       # a candidate of its own: the window stage starts from the crisp cells (features off)
             cands.append((*trans[0], True))
-    b1 = _window_stage(loss, lat_best, w, int(0.6 * left),
-                       t0 + 0.6 * (stage_deadline - t0) + 0.4 * (time.perf_counter() - t0), cfg, seed)
-    history += b1.history
-    cands.append((b1.best_loss, lat_best[1], b1.best_params, "window", True))
+    now = time.perf_counter()
+    b1, w_compl, w_evals, w_history = _window_stage(loss, lat_best, w, int(0.6 * left),
+                                                    now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
+                                                    network_known=lat.network_is_white is not None)
+    history += w_history
+    logger.info("layout fit: window stage from %s (%.4f): %d evals -> %.4f%s, %.1f s into the fit", lat_best[3],
+                lat_best[0], w_evals, b1.best_loss, " (other polarity)" if w_compl != lat_best[1] else "",
+                time.perf_counter() - t0)
+    cands.append((b1.best_loss, w_compl, b1.best_params, "window", True))
     best = min(cands, key=lambda c: c[0])
-    b2 = _polish(loss, best, w, left - b1.evaluations, stage_deadline, cfg, seed)
+    b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed)
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, "polish", True))
     cands.sort(key=lambda c: c[0])
-    gated = _lattice_gate(loss, lat, cands)
+    gated = _lattice_gate(loss, lat, cands, at_most=GATE_CHECKS)
     # none keeps the lattice on a fresh realisation (a noisy target's own analysis is noisy too): the layouts
     # built on the lattice (window stage, lattice starts) rather than a database entry or a drifted polish
     on_lattice = [c for c in cands if c[3] in ("window", "lattice", "transplant")]
@@ -352,7 +442,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     else:
         own, complement, params, chosen = cands[0][0], cands[0][1], np.asarray(cands[0][2], np.float64), cands[0][3]
     secs = time.perf_counter() - t0
-    evals = n0 + b1.evaluations + b2.evaluations + n_val
+    evals = n0 + w_evals + b2.evaluations + n_val
     logger.info("PPTBF layout fit %dx%d (%s lattice, period %.1f px): loss %.4f (best start) -> %.4f, "
                 "%d evals, %.1f s%s", w, h, lat.kind, lat.period or 0.0, scored[0][0], own, evals, secs,
                 " (complement)" if complement else "")
@@ -365,4 +455,5 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                    meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
                          "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
-                         "lattice_kept": len(gated) > 0, "chosen": chosen})
+                         "lattice_kept": len(gated) > 0, "chosen": chosen,
+                         "screened": st.screened})

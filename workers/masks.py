@@ -95,7 +95,8 @@ class MaskFitConfig:
     rerank_pool: int = 12         # "vgg19": database entries per polarity re-ranked by that loss (>= top_k)
     lattice: bool = True          # masks with a lattice (bricks, tiles): lattice-first fit with the VGG-19 loss
     layout_size: int = 256        # fit width (px) of that path (the mask's own when smaller)
-    lattice_starts: int = 14      # tiling/layout matches of the lattice tried as starts (each in both polarities)
+    lattice_starts: int = 14      # (layout, polarity) pairs on the lattice scored as starts at full size
+    lattice_screen: int = 60      # layouts (each in both polarities) screened on a half-size copy to pick them
     incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
     #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
@@ -224,8 +225,9 @@ class MaskLoss:
     """
 
     def __init__(self, target: np.ndarray, index, valid: np.ndarray | None = None, *,
-                 shift=(0.0, 0.0), realisations: int = 1) -> None:
+                 shift=(0.0, 0.0), realisations: int = 1, pixel_scale: float = 1.0) -> None:
         self.target = target
+        self.pixel_scale = float(pixel_scale)   # < 1: the target is a reduced copy; parameters keep their meaning
         self.realisations = max(1, int(realisations))
         self.valid = valid
         self.index = index
@@ -247,7 +249,7 @@ class MaskLoss:
         """Binary render (inverted if complement) at the target's size and the loss's realisation (or ``shift``)."""
         p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
         m = pp.render_mask(p, self.width, self.height, shift=self.shift if shift is None else shift,
-                           ref_width=self.width)
+                           ref_width=int(round(self.width / self.pixel_scale)), pixel_scale=self.pixel_scale)
         return ~m if complement else m
 
     def describe(self, mask: np.ndarray) -> np.ndarray:
