@@ -16,12 +16,13 @@ min_side, distance_threshold, outlier_z, crop_size. ``spec=None`` means ``{"meth
 
 Structure first: an automatic (scribble-free) matting split of the root first looks for a layout in the relief
 (height from normals, normal tilt) and then the albedo (workers.structure). When one is found and its cut shows
-the layout at least as strongly as the colour split's layers (workers.structure.layout_rank: a 2-D lattice, then
-regularity; at a small working size a 1-2 px mortar cut turns to speckle while the colours still show the
-bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges), "root.1" = the cells; with more than 2
-layers (or "auto"), the cells are split again by colour matting (layers - 1, or "auto") as "root.1.*", so
-stains and colour variation become nested splits (with 2 layers they stay in the cells' noise). Children specs
-apply to root.0 / root.1 as usual. Scribbles override it; ``structure = false`` turns it off.
+the layout about as strongly as the colour split's layers or more (workers.structure.layout_rank: a 2-D
+lattice, then regularity; at a small working size a 1-2 px mortar cut turns to speckle while the colours still
+show the bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges),
+"root.1" = the cells; with more than 2 layers (or "auto"), the cells are split again by colour matting
+(layers - 1, or "auto") as "root.1.*", so stains and colour variation become nested splits (with 2 layers they
+stay in the cells' noise). Children specs apply to root.0 / root.1 as usual. Scribbles override it;
+``structure = false`` turns it off.
 
 Node ids: "root", "root.0", "root.1", "root.0.1", ... (layer / kind index). A split solves only over its parent's
 pixels. Matting layers that come out empty are dropped (a warning; the other ids keep their index).
@@ -257,8 +258,7 @@ def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode
     spec = validate_spec(spec)
     albedo, height, rough = _arrays(maps)
     fm = feature_maps(albedo, height, rough, spectrum_dims=16 if _uses_spectrum(spec) else 0, seed=seed)
-    root = root_node(*albedo.shape[:2])
-    root.meta["features"] = fm.names
+    root = _root(albedo, fm)
     if spec.get("method", "matting") == "matting" and spec.get("scribbles") is None and spec.get("structure", True):
         d = maps.maps() if hasattr(maps, "maps") and callable(maps.maps) else maps
         normal = d.get("normal")
@@ -267,7 +267,7 @@ def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode
             _split(root, spec, fm, seed)
             colour = _colour_layout(root)
             if not _colour_shows_more(colour[0], layout_rank(split.lattice)):
-                root.children, root.meta = [], {"features": fm.names}
+                root = _root(albedo, fm)
                 _structure_first(root, spec, split, fm, seed)
             else:
                 logger.info("structure: the colour split shows the layout more (%s vs %s); kept", colour[1],
@@ -275,6 +275,13 @@ def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode
                 root.meta["structure_rejected"] = {**split.describe(), "colour_rank": list(colour[0])}
             return root
     _split(root, spec, fm, seed)
+    return root
+
+
+def _root(albedo: np.ndarray, fm: FeatureMaps) -> MaskNode:
+    """An unsplit root over the whole material, naming the matting features."""
+    root = root_node(*albedo.shape[:2])
+    root.meta["features"] = fm.names
     return root
 
 

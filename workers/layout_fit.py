@@ -18,8 +18,7 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    fitted: a grid over sector count (2^arity), larp and smoothness (the sector count is a rounded step a local
    search cannot move: on a square grid with 32 sectors it alone took the fresh-realisation Gram ratio from
    6.7 to 1.2), then jitter, larp, norm, smoothness, blend, sigma by local search (window shape and mixture by
-   sweep); then every
-   entry is freed for a final polish with small steps.
+   sweep); then every entry is freed for a final polish with small steps.
 4. The candidates (polished, layout-fixed, best start, best database entry) are compared on fresh realisations;
    the best there is returned.
 
@@ -165,10 +164,10 @@ def _window_grid(budgets: list[Budget], x0: np.ndarray) -> None:
     seen the start's neighbourhood) under each budget (one per polarity), point by point; the budgets keep
     their best."""
     names = list(WINDOW_GRID)
-    here = np.array([x0[pp.PARAM_INDEX[n]] for n in names]) / np.array([max(WINDOW_GRID[n]) for n in names])
+    span = np.array([max(WINDOW_GRID[n]) for n in names])
+    here = np.array([x0[pp.PARAM_INDEX[n]] for n in names]) / span
     grid = sorted(itertools.product(*WINDOW_GRID.values()),
-                  key=lambda v: float(np.abs(np.array(v) / np.array([max(WINDOW_GRID[n]) for n in names])
-                                             - here).sum()))
+                  key=lambda v: float(np.abs(np.array(v) / span - here).sum()))
     points = [np.array(x0, np.float64)]
     for values in grid:
         p = np.array(x0, np.float64)
@@ -245,10 +244,10 @@ def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice
     """(params, complement) of the lattice's layouts to score at full size. Up to cfg.lattice_screen layouts that
     put cells on the lattice (each in both polarities: a cellular window is high inside cells, a white network
     needs the complement, and real masks are often broken networks on both sides) are scored on a reduced copy
-    of the target and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a herringbone or a
-    pavement is often far down the list of matches, after square grids and bonds at several supercells) shows
-    at half size already, for a quarter of the cost. At most max(cfg.lattice_starts, cfg.max_evals / 2) are
-    screened. Returns the kept starts and the number of screening evaluations."""
+    of the target and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a
+    herringbone or a pavement is often far down the list of matches, after square grids and bonds at several
+    supercells) shows at half size already, for a quarter of the cost. At most max(cfg.lattice_starts,
+    cfg.max_evals / 2) are screened. Returns the kept starts and the number of screening evaluations."""
     h, w = target.shape
     pols = (bool(lat.network_is_white), not lat.network_is_white)
     cands = [(p, c) for p in pptbf_starts(lat, w, max_matches=max(cfg.lattice_screen, cfg.lattice_starts))
@@ -284,7 +283,8 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
     entries (both polarities, threshold from the target)."""
     out = _Starts([], [])
     t0 = time.perf_counter()
-    layouts, out.screened = _screened_layouts(target, valid, lat, cfg, loss.shift, t0 + SCREEN_SHARE * cfg.time_budget_s)
+    layouts, out.screened = _screened_layouts(target, valid, lat, cfg, loss.shift,
+                                              t0 + SCREEN_SHARE * cfg.time_budget_s)
     out.screen_seconds = time.perf_counter() - t0
     starts = [(p, c, "lattice") for p, c in layouts]
     matches = []
@@ -350,12 +350,12 @@ def _transplants(loss: "GramMaskLoss", lat: Lattice, placement: tuple, matches: 
 
 
 def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
-                  cfg: MaskFitConfig, seed: int, network_known: bool = False) -> tuple[Budget, bool, int, list[float]]:
+                  cfg: MaskFitConfig, seed: int,
+                  network_known: bool = False) -> tuple[Budget, bool, int, list[float]]:
     """Layout frozen: the cell-shape grid, in both polarities unless the lattice analysis knows which side is the
     network (the crisp template may prefer the complement that the target's own cell shape does not: a
-    pavement with round 16-sector cells), then the window entries by
-    local search and sweeps in the better one. Returns (that polarity's budget, its complement, the
-    evaluations of both, the history of both)."""
+    pavement with round 16-sector cells), then the window entries by local search and sweeps in the better one.
+    Returns (that polarity's budget, its complement, the evaluations of both, the history of both)."""
     own, compl, x0, _ = start
     compl = bool(compl)
     pols = (compl,) if network_known else (compl, not compl)
@@ -367,12 +367,12 @@ def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, 
         pass
     c = min(budgets, key=lambda k: budgets[k].best_loss)
     b = budgets[c]
-    other = budgets.get(not c, Budget(b.loss, 0, deadline))
-    b.max_evals = max(0, max_evals - other.evaluations)
+    other_evals = sum(x.evaluations for k, x in budgets.items() if k != c)
+    b.max_evals = max(0, max_evals - other_evals)
     optimise(b.loss, b.best_params, width, OptSettings(rounds=3, max_evals=b.max_evals, algorithm=cfg.algorithm,
                                                        step=0.15, seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
     history = [v for k in pols for v in budgets[k].history]
-    return b, c, b.evaluations + other.evaluations, history
+    return b, c, b.evaluations + other_evals, history
 
 
 def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,

@@ -490,9 +490,9 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
 
 
 def _vgg_loss(target: np.ndarray, valid: np.ndarray | None, cfg: MaskFitConfig) -> MaskLoss:
-    """The query path's VGG-19 Gram + layout loss (the paper's texture loss): the database descriptor finds the
-    starts, but compressed to a sketch of the Grams plus LBP and spectrum it can prefer a finer speckle than a
-    rust target's blotches."""
+    """The query path's VGG-19 Gram + layout loss (the paper's texture loss, also the layout fit's): the
+    database descriptor finds the starts; this loss judges them on the field's yardstick rather than on the
+    descriptor's sketch of the Grams plus LBP and spectrum."""
     from .layout_fit import GramMaskLoss
 
     return GramMaskLoss(target, valid, shift=cfg.shift, realisations=cfg.realisations)
