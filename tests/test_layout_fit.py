@@ -8,7 +8,8 @@ import pytest
 
 from pptbf_db import pptbf as pp
 from workers import lattice as L
-from workers.layout_fit import PLACEMENT, GramMaskLoss, loss_factor, transplant
+from workers.layout_fit import PLACEMENT, GramMaskLoss, crop_loss, loss_factor, transplant, window_lines
+from workers.mask_opt import Budget
 from workers.masks import MaskFitConfig, fit_pptbf_mask
 
 
@@ -42,6 +43,8 @@ def test_running_bond_comes_back_as_running_bond(bundled_index):
     loss = GramMaskLoss(target, factor=loss_factor(128))
     ratio = loss.mean_at(fit.params, fit.complement, True, fresh) / loss.mean_at(p, False, True, fresh)
     assert ratio <= 2.0, ratio
+    # the returned threshold is the one the fit was scored with, in the returned polarity
+    assert abs(fit.render(shift=fresh[1]).mean() - target.mean()) <= 0.02
     # the fit is a graph-node-ready vector at the fit's size
     assert fit.fit_size == (128, 128) and fit.node_params(256)["ref_width"] == 256
 
@@ -57,6 +60,59 @@ def test_transplant_keeps_cells_and_takes_look():
         assert t[i] == (place if name in PLACEMENT else look)[i], name
     per, ang = L.compare_lattices(L.analyse_lattice(target), L.analyse_lattice(pp.render_mask(t, 128, shift=(9, 4))))
     assert per <= 0.05 and ang <= 3.0, (per, ang)
+
+
+def _pavement(size: int = 256):
+    """A 4x4 pavement with rounded cells (larp 0.125, smoothness 0.6, 16 sectors): a narrow valley of the loss in
+    larp and a layout that differs from its half turn."""
+    p = L.layout_params(L.LatticeMatch(16, 21.0, 0.8, 1.78, 0.0), 0.62, larp=0.125)
+    p[pp.PARAM_INDEX["window_smoothness"]] = 0.6
+    return p, pp.render_mask(p, size, size, shift=(3.3, 1.7))
+
+
+def test_crop_loss_renders_the_whole_masks_top_left():
+    """The crop loss draws its renders in the whole mask's frame: its render is the top-left quarter of the
+    whole loss's render, pixel for pixel (the same threshold cut aside)."""
+    p, target = _pavement(128)
+    whole = GramMaskLoss(target, factor=1)
+    crop = crop_loss(whole)
+    assert crop.target.shape == (64, 64) and crop.ref_width == 128
+    v_whole = pp.evaluate(p, 128, 128, shift=whole.shift, ref_width=128)
+    v_crop = pp.evaluate(p, 64, 64, shift=crop.shift, ref_width=crop.ref_width)
+    assert np.allclose(v_crop, v_whole[:64, :64])
+    assert crop_loss(GramMaskLoss(target[:100, :100], factor=1)) is None      # a 50 px crop: too small
+
+
+def test_half_turn_of_a_chiral_layout():
+    """A pavement turned by 180 degrees is another layout on the same lattice (its Gram distance to the target
+    is several times the unturned one's); a running bond's half turn is itself."""
+    p, target = _pavement()
+    q = L.half_turn(p)
+    assert q is not None and q[pp.PARAM_INDEX["rotation"]] == pytest.approx((1.78 + 1.0) % 2.0)
+    loss = GramMaskLoss(target, factor=2)
+    shifts = [(11.1, 5.5), (21.0, 3.0)]
+    assert loss.mean_at(q, False, True, shifts) > 2.0 * loss.mean_at(p, False, True, shifts)
+    per, ang = L.compare_lattices(L.analyse_lattice(target), L.analyse_lattice(pp.render_mask(q, 256, shift=(9, 4))))
+    assert per <= 0.05 and ang <= 3.0
+    assert L.half_turn(_bond()[0]) is None
+
+
+def test_window_lines_find_the_cell_shape():
+    """From the crisp template on the right layout but half-turned, the line search on the crop recovers the
+    pavement's cell shape: larp within 0.07 of the truth and a fresh-realisation Gram distance within 1.5x of the
+    truth's (the template scores over 5x)."""
+    p, target = _pavement()
+    start = L.layout_params(L.LatticeMatch(16, 21.0, 0.8, 0.78, 0.0), 0.62)
+    loss = GramMaskLoss(target, factor=2)
+    crop = crop_loss(loss)
+    b = Budget(lambda q: crop(q, False), 150, float("inf"))
+    x = window_lines(b, start, cycles=2)
+    assert b.evaluations <= 150
+    shifts = [(11.1, 5.5), (21.0, 3.0)]
+    floor = loss.mean_at(p, False, True, shifts)
+    assert loss.mean_at(start, False, True, shifts) > 5.0 * floor
+    assert abs(x[pp.PARAM_INDEX["window_larp"]] - 0.125) <= 0.07, x
+    assert loss.mean_at(x, False, True, shifts) <= 1.5 * floor
 
 
 def test_tiny_budget_is_respected(bundled_index):

@@ -375,7 +375,9 @@ def _fill_domain_lattices() -> None:
     with aspect ratios 0.8-1.3, written here; tests render each and compare)."""
     square = ((1.0, 0.0), (0.0, 1.0))
     DOMAIN_LATTICE.update({t: (square,) for t in (0, 1, 16, 17)})   # relaxed 2-3 are irregular
-    pythagorean = ((0.4, 0.2), (-0.2, 0.4))     # big and small squares: (a, b), (-b, a); the unit square repeats too
+    # big and small squares repeat along (b, a), (-a, b) with (a, b) = (0.4, 0.2) (measured: the mirror image,
+    # ((0.4, 0.2), (-0.2, 0.4)), is another lattice that no render has); the unit square repeats too
+    pythagorean = ((0.2, 0.4), (-0.4, 0.2))
     DOMAIN_LATTICE.update({t: (pythagorean, square) for t in (14, 15)})
     herring2 = ((0.25, 0.25), (-0.5, 0.5))
     herring3 = (((0.5, -0.5), (0.5, 0.5)), ((-2.0 / 3.0, 1.0 / 3.0), (0.0, 1.0)),
@@ -494,6 +496,13 @@ def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, w
 ROW_ASPECTS = (1.0, 1.5, 2.0, 3.0, 0.75, 0.5)
 
 
+#: families whose layout turned by 180 degrees is another layout on the same lattice (the 4x4 pavements: Gram
+#: distance of the half-turned render 1.1-6x that of the render itself over 4 draws each; herringbone 13:
+#: 1.2-1.5x). match_tilings returns one turn of each layout (the lattice is the same); ``half_turn`` gives the
+#: other, which a fit must try too for these families
+HALF_TURN_CHIRAL = frozenset({13, 16, 17})
+
+
 def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> list[LatticeMatch]:
     """Tiling families and layouts whose cell lattice equals the target's within `max_error` (relative), best
     first, one per (family, resolution/aspect/rotation) found."""
@@ -568,6 +577,31 @@ def layout_params(m: LatticeMatch, white_fraction: float, larp: float = 1.0,
     p[_I["rotation"]] = m.rotation
     p[_I["window_larp"]] = larp
     return pp.clip_params(p)
+
+
+#: each family with cells split at random (probability 0.5) and its unsplit sibling: the same placement of cells
+SPLIT_SIBLING: dict[int, int] = {a: b for x, y in ((0, 1), (6, 7), (8, 9), (10, 11), (12, 13), (14, 15), (16, 17))
+                                 for a, b in ((x, y), (y, x))}
+
+
+def split_sibling(params: np.ndarray) -> np.ndarray | None:
+    """The vector with its tiling's split (or unsplit) sibling (SPLIT_SIBLING), None when it has none."""
+    t = SPLIT_SIBLING.get(int(params[_I["tiling"]]))
+    if t is None:
+        return None
+    out = np.array(params, dtype=np.float64)
+    out[_I["tiling"]] = t
+    return out
+
+
+def half_turn(params: np.ndarray) -> np.ndarray | None:
+    """The vector turned by 180 degrees when its tiling is in HALF_TURN_CHIRAL (a different layout on the same
+    lattice), else None (the same layout)."""
+    if int(params[_I["tiling"]]) not in HALF_TURN_CHIRAL:
+        return None
+    out = np.array(params, dtype=np.float64)
+    out[_I["rotation"]] = (out[_I["rotation"]] + 1.0) % 2.0
+    return out
 
 
 def pptbf_starts(lat: Lattice, width: int, max_matches: int = 16) -> list[np.ndarray]:

@@ -14,11 +14,11 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    mask, the paper's texture loss) plus an autocorrelation (layout) distance, at the target's resolution (up to 256 px), rendered there and area-averaged
    by an integer factor to the loss resolution (128 px for a 256 px mask), so 2-3 px mortar lines survive as
    grey lines instead of vanishing in a binary downsample.
-3. From the best lattice start the layout (tiling, period, rotation, aspect) is frozen while the window is
-   fitted: a grid over sector count (2^arity), larp and smoothness (the sector count is a rounded step a local
-   search cannot move: on a square grid with 32 sectors it alone took the fresh-realisation Gram ratio from
-   6.7 to 1.2), then jitter, larp, norm, smoothness, blend, sigma by local search (window shape and mixture by
-   sweep); then every entry is freed for a final polish with small steps.
+3. From the best lattice start the layout (tiling, period, rotation, aspect) is frozen while the cell shape is
+   fitted: a line search over larp, smoothness, sector count (2^arity), jitter and norm (``window_lines``; the
+   sector count is a rounded step a local search cannot move, and the loss is sharp in larp) on a crop of the
+   target at full resolution (a quarter of the cost), then the window entries by local search at full size
+   (window shape and mixture by sweep); then every entry is freed for a final polish with small steps.
 4. The candidates (polished, layout-fixed, best start, best database entry) are compared on fresh realisations;
    the best there is returned.
 
@@ -26,7 +26,6 @@ A target without a lattice keeps the query-and-optimise path of ``workers.masks`
 """
 from __future__ import annotations
 
-import itertools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -40,7 +39,7 @@ from pptbf_db import pptbf as pp
 from .features import GramExtractor, gram_distance
 from .errors import InputError
 from .inpaint import masked_autocorrelation
-from .lattice import Lattice, pptbf_starts, radial_profile
+from .lattice import Lattice, half_turn, pptbf_starts, radial_profile, split_sibling
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
 from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
 
@@ -100,17 +99,11 @@ class GramMaskLoss(MaskLoss):
 
     def __init__(self, target: np.ndarray, valid: np.ndarray | None = None, *, shift=(0.0, 0.0),
                  factor: int = 1, realisations: int = 1, extractor: GramExtractor | None = None,
-                 structure_weight: float = STRUCTURE_WEIGHT, pixel_scale: float = 1.0) -> None:
-        self.target = target
-        self.pixel_scale = float(pixel_scale)
-        self.valid = valid
+                 structure_weight: float = STRUCTURE_WEIGHT, pixel_scale: float = 1.0,
+                 ref_width: int | None = None) -> None:
+        self._set_target(target, valid, shift, realisations, pixel_scale, ref_width)
         self.index = None
-        self.shift = tuple(shift)
-        self.realisations = max(1, int(realisations))
-        self.height, self.width = target.shape
         self.factor = int(factor)
-        sel = target if valid is None else target[valid]
-        self.white = float(np.clip(sel.mean() if sel.size else 0.5, 0.0, 1.0))
         self.extractor = extractor or GramExtractor.vgg19(1)
         self.structure_weight = float(structure_weight)
         self._valid_t = None if valid is None else self._image(valid)[0, 0]
@@ -153,30 +146,72 @@ class GramMaskLoss(MaskLoss):
         return d
 
 
-#: coarse grid over the cell shape tried before the window stage's local search (larp: straight to round
-#: borders; smoothness: polygon to curved cells; arity: 2^arity sectors of the cell border, which the local
-#: search cannot move, being a rounded step)
-WINDOW_GRID = {"window_arity": (3.0, 4.0, 5.0), "window_larp": (0.0, 0.5, 1.0), "window_smoothness": (0.0, 0.5, 1.0)}
+#: values tried for each cell-shape entry by the window stage's line search (larp: straight to round borders;
+#: smoothness: polygon to curved cells; arity: 2^arity sectors of the cell border, a rounded step a local search
+#: cannot move; jitter: irregular cells; norm: the Minkowski norm of the cell distance). The loss is sharp in
+#: larp: a pavement whose true larp is 0.125 scores 0.014 there and 0.10-0.17 at 0 and 0.25, so each line is
+#: refined around its best value
+WINDOW_LINES: dict[str, tuple[float, ...]] = {
+    "window_larp": tuple(np.linspace(0.0, 1.0, 9)),
+    "window_smoothness": (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0),
+    "window_arity": (3.0, 4.0, 5.0, 6.0),
+    "jitter": (0.0, 0.05, 0.1, 0.2, 0.3),
+    "window_norm": (1.0, 1.5, 2.0, 2.5, 3.0),
+}
+#: entries refined by halving steps around the best grid value (the others are steps of their own)
+WINDOW_REFINED = ("window_larp", "window_smoothness", "jitter", "window_norm")
 
 
-def _window_grid(budgets: list[Budget], x0: np.ndarray) -> None:
-    """Every WINDOW_GRID point around x0 (x0 first, then the nearest points: a grid cut short by the budget has
-    seen the start's neighbourhood) under each budget (one per polarity), point by point; the budgets keep
-    their best."""
-    names = list(WINDOW_GRID)
-    span = np.array([max(WINDOW_GRID[n]) for n in names])
-    here = np.array([x0[pp.PARAM_INDEX[n]] for n in names]) / span
-    grid = sorted(itertools.product(*WINDOW_GRID.values()),
-                  key=lambda v: float(np.abs(np.array(v) / span - here).sum()))
-    points = [np.array(x0, np.float64)]
-    for values in grid:
-        p = np.array(x0, np.float64)
-        for name, v in zip(names, values):
-            p[pp.PARAM_INDEX[name]] = v
-        points.append(p)
-    for p in points:
-        for b in budgets:
-            b(p)
+def _line(budget: Budget, x: np.ndarray, name: str, values) -> np.ndarray:
+    """x with entry `name` set to the value of `values` the budget scores best (x's own value included)."""
+    i = pp.PARAM_INDEX[name]
+    best, best_loss = x, budget(x)
+    for v in values:
+        p = np.array(x, np.float64)
+        p[i] = v
+        p = pp.clip_params(p)
+        loss = budget(p)
+        if loss < best_loss:
+            best, best_loss = p, loss
+    return best
+
+
+def _same_lattice(x: np.ndarray) -> list[np.ndarray]:
+    """Other layouts on x's lattice: its half turn (chiral families), its split or unsplit sibling, and both."""
+    turned, sibling = half_turn(x), split_sibling(x)
+    both = None if turned is None or sibling is None else split_sibling(turned)
+    return [q for q in (turned, sibling, both) if q is not None]
+
+
+def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3) -> np.ndarray:
+    """Coordinate line search over the cell shape (WINDOW_LINES), layout untouched: each entry over its values,
+    then halving steps around the best (two per entry), cycle after cycle until one improves nothing; returns
+    the best vector (also the budget's). A coarse grid over larp x smoothness x arity misses the narrow valleys
+    of the loss, a local search from the crisp template does not cross the arity steps; lines do both for a
+    few dozen evaluations a cycle. A chiral family's half turn (``lattice.half_turn``) and the family's split or
+    unsplit sibling (``lattice.split_sibling``) are tried at each cycle.
+    Stops quietly when the budget is spent."""
+    x = pp.clip_params(np.asarray(x0, np.float64))
+    try:
+        for _ in range(max(1, cycles)):
+            before = budget(x)
+            for q in _same_lattice(x):
+                if budget(q) < budget(x):
+                    x = q
+            for name, values in WINDOW_LINES.items():
+                x = _line(budget, x, name, values)
+            for name in WINDOW_REFINED:
+                values = WINDOW_LINES[name]
+                step = (max(values) - min(values)) / (len(values) - 1) / 2.0
+                for _ in range(2):
+                    v = x[pp.PARAM_INDEX[name]]
+                    x = _line(budget, x, name, (v - step, v + step))
+                    step /= 2.0
+            if budget(x) >= before:
+                break
+    except BudgetExhausted:
+        pass
+    return budget.best_params if budget.best_params is not None else x
 
 
 #: a candidate keeps the target's layout when a fresh realisation's lattice is within these of the target's
@@ -268,7 +303,15 @@ def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice
         scored.append((screen(screen.with_threshold(p, c), c), i, p, c))
         n += 1
     scored.sort(key=lambda s: (s[0], s[1]))
-    return [(p, c) for _, _, p, c in scored[:keep]], n
+    kept = []
+    for v, _, p, c in scored[:keep]:        # the other half turn of a chiral layout, where it screens better
+        q = half_turn(p)
+        if q is not None and time.perf_counter() < deadline:
+            n += 1
+            vq = screen(screen.with_threshold(q, c), c)
+            p = q if vq < v else p
+        kept.append((p, c))
+    return kept, n
 
 
 #: database entries per polarity scored as starts on a mask with a lattice (a noisy entry renders slowly and
@@ -349,30 +392,78 @@ def _transplants(loss: "GramMaskLoss", lat: Lattice, placement: tuple, matches: 
     return _lattice_gate(loss, lat, out, at_most=3, first=True), losses
 
 
-def _window_stage(loss: GramMaskLoss, start: tuple, width: int, max_evals: int, deadline: float,
-                  cfg: MaskFitConfig, seed: int,
-                  network_known: bool = False) -> tuple[Budget, bool, int, list[float]]:
-    """Layout frozen: the cell-shape grid, in both polarities unless the lattice analysis knows which side is the
-    network (the crisp template may prefer the complement that the target's own cell shape does not: a
-    pavement with round 16-sector cells), then the window entries by local search and sweeps in the better one.
-    Returns (that polarity's budget, its complement, the evaluations of both, the history of both)."""
+#: share of the window stage's time for the line search on the crop (the local search at full size has the rest)
+WINDOW_SEARCH_SHARE = 0.6
+#: the crop the window stage's line search scores on: this share of the mask's width and height (a quarter of
+#: the pixels at full resolution: 0.1 s an evaluation against 0.38 s at 256 px, and on a pavement the same
+#: ranking of 25 cell shapes), used from this width of the crop up
+CROP_SHARE, CROP_MIN_WIDTH = 0.5, 64
+
+
+def crop_loss(loss: GramMaskLoss) -> GramMaskLoss | None:
+    """The loss on the top-left CROP_SHARE x CROP_SHARE of its target, at full resolution, parameters referring
+    to the whole mask's width: cell shapes are local, so a crop ranks them as the whole does, for a quarter of
+    the render and VGG cost. None when the crop would be narrower than CROP_MIN_WIDTH or mostly unknown."""
+    h, w = loss.target.shape
+    ch, cw = int(h * CROP_SHARE), int(w * CROP_SHARE)
+    if cw < CROP_MIN_WIDTH or ch < CROP_MIN_WIDTH:
+        return None
+    valid = None if loss.valid is None else loss.valid[:ch, :cw]
+    if valid is not None and valid.mean() < 0.5:
+        return None
+    return GramMaskLoss(loss.target[:ch, :cw], valid, shift=loss.shift, factor=loss.factor,
+                        extractor=loss.extractor, structure_weight=loss.structure_weight, ref_width=loss.ref_width)
+
+
+@dataclass
+class _Window:
+    """What the window stage found: the full-size budget of the chosen polarity, that polarity, the full-size
+    evaluations (both polarities) and their history, and the crop line search's evaluations (not counted)."""
+
+    budget: Budget
+    complement: bool
+    evaluations: int
+    history: list[float]
+    search_evals: int
+
+
+def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, width: int, max_evals: int,
+                  deadline: float, cfg: MaskFitConfig, seed: int, network_known: bool = False) -> _Window:
+    """Layout frozen: the cell shape by line search (``window_lines``) on the crop, one cycle in each polarity
+    unless the lattice analysis knows which side is the network (the crisp template may prefer the complement
+    that the target's own cell shape does not: a pavement with round 16-sector cells), more cycles in the
+    better one; then the window entries by local search (window shape and mixture by sweep) at full size from
+    the line search's best. Without a crop the line search runs on the full-size loss, counted."""
     own, compl, x0, _ = start
     compl = bool(compl)
     pols = (compl,) if network_known else (compl, not compl)
-    budgets = {c: Budget(lambda q, c=c: loss(q, c), max(0, max_evals // len(pols)), deadline) for c in pols}
-    budgets[compl].seed(x0, own)
+    now = time.perf_counter()
+    search_deadline = now + WINDOW_SEARCH_SHARE * (deadline - now)
+    small = crop or loss
+    cap = max_evals if crop is not None else max(0, max_evals // 2)
+    searches = {c: Budget(lambda q, c=c: small(q, c), cap // len(pols) if len(pols) > 1 else cap, search_deadline)
+                for c in pols}
+    for c in pols:
+        window_lines(searches[c], x0, cycles=1)
+    c = min(searches, key=lambda k: searches[k].best_loss)
+    s = searches[c]
+    s.max_evals = max(s.evaluations, cap - sum(x.evaluations for k, x in searches.items() if k != c))
+    window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3)
+    search_evals = sum(x.evaluations for x in searches.values())
+    counted = 0 if crop is not None else search_evals
+    history = [] if crop is not None else [v for k in pols for v in searches[k].history]
+    b = Budget(lambda q, c=c: loss(q, c), max(0, max_evals - counted), deadline)
+    if c == compl:
+        b.seed(x0, own)
     try:
-        _window_grid([budgets[c] for c in pols], x0)
+        if s.best_params is not None:
+            b(s.best_params)
     except BudgetExhausted:
         pass
-    c = min(budgets, key=lambda k: budgets[k].best_loss)
-    b = budgets[c]
-    other_evals = sum(x.evaluations for k, x in budgets.items() if k != c)
-    b.max_evals = max(0, max_evals - other_evals)
-    optimise(b.loss, b.best_params, width, OptSettings(rounds=3, max_evals=b.max_evals, algorithm=cfg.algorithm,
-                                                       step=0.15, seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
-    history = [v for k in pols for v in budgets[k].history]
-    return b, c, b.evaluations + other_evals, history
+    x = b.best_params if b.best_params is not None else x0
+    optimise(b.loss, x, width, OptSettings(rounds=2, max_evals=b.max_evals, algorithm=cfg.algorithm,
+                                           step=0.08, seed=seed, frozen=WINDOW_STAGE_FROZEN), budget=b)
+    return _Window(b, c, b.evaluations + counted, history + b.history, search_evals if crop is not None else 0)
 
 
 def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,
@@ -417,13 +508,14 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
         if trans:       # a candidate of its own: the window stage starts from the crisp cells (features off)
             cands.append((*trans[0], True))
     now = time.perf_counter()
-    b1, w_compl, w_evals, w_history = _window_stage(loss, lat_best, w, int(0.6 * left),
-                                                    now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
-                                                    network_known=lat.network_is_white is not None)
-    history += w_history
-    logger.info("layout fit: window stage from %s (%.4f): %d evals -> %.4f%s, %.1f s into the fit", lat_best[3],
-                lat_best[0], w_evals, b1.best_loss, " (other polarity)" if w_compl != lat_best[1] else "",
-                time.perf_counter() - t0)
+    win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left),
+                        now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
+                        network_known=lat.network_is_white is not None)
+    b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
+    history += win.history
+    logger.info("layout fit: window stage from %s (%.4f): %d evals (+%d on the crop) -> %.4f%s, %.1f s into the "
+                "fit", lat_best[3], lat_best[0], w_evals, win.search_evals, b1.best_loss,
+                " (other polarity)" if w_compl != lat_best[1] else "", time.perf_counter() - t0)
     cands.append((b1.best_loss, w_compl, b1.best_params, "window", True))
     best = min(cands, key=lambda c: c[0])
     b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed)
@@ -447,6 +539,9 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                 "%d evals, %.1f s%s", w, h, lat.kind, lat.period or 0.0, scored[0][0], own, evals, secs,
                 " (complement)" if complement else "")
     q = st.query
+    # every evaluation set the threshold from the target's white fraction for its polarity; a vector that came
+    # from the other polarity's start (window stage, polish) still carries that polarity's threshold
+    params = loss.with_threshold(params, complement)
     return MaskFit(params=pp.clip_params(params), complement=bool(complement),
                    loss_query=float(st.loss_query if np.isfinite(st.loss_query) else scored[0][0]),
                    loss_final=float(own), evaluations=int(evals), seconds=secs,
@@ -456,4 +551,4 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
                          "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
                          "lattice_kept": len(gated) > 0, "chosen": chosen,
-                         "screened": st.screened})
+                         "screened": st.screened, "window_search_evals": win.search_evals})

@@ -225,18 +225,28 @@ class MaskLoss:
     """
 
     def __init__(self, target: np.ndarray, index, valid: np.ndarray | None = None, *,
-                 shift=(0.0, 0.0), realisations: int = 1, pixel_scale: float = 1.0) -> None:
-        self.target = target
-        self.pixel_scale = float(pixel_scale)   # < 1: the target is a reduced copy; parameters keep their meaning
-        self.realisations = max(1, int(realisations))
-        self.valid = valid
+                 shift=(0.0, 0.0), realisations: int = 1, pixel_scale: float = 1.0,
+                 ref_width: int | None = None) -> None:
+        self._set_target(target, valid, shift, realisations, pixel_scale, ref_width)
         self.index = index
-        self.shift = tuple(shift)
-        self.height, self.width = target.shape
-        sel = target if valid is None else target[valid]
-        self.white = float(np.clip(sel.mean() if sel.size else 0.5, 0.0, 1.0))
         self._raw = _raw_describer(index)
         self._target_desc = self.describe(target)
+
+    def _set_target(self, target: np.ndarray, valid: np.ndarray | None, shift, realisations: int,
+                    pixel_scale: float, ref_width: int | None) -> None:
+        """The fields every mask loss has: the target, its valid pixels, white fraction and realisation, and the
+        frame its renders are drawn in. pixel_scale < 1: the target is a reduced copy; ref_width: the width
+        the parameters refer to (the full mask's when the target is a crop of it); both keep the parameters'
+        meaning."""
+        self.target = target
+        self.pixel_scale = float(pixel_scale)
+        self.realisations = max(1, int(realisations))
+        self.valid = valid
+        self.shift = tuple(shift)
+        self.height, self.width = target.shape
+        self.ref_width = int(ref_width) if ref_width else int(round(self.width / self.pixel_scale))
+        sel = target if valid is None else target[valid]
+        self.white = float(np.clip(sel.mean() if sel.size else 0.5, 0.0, 1.0))
 
     def with_threshold(self, params: np.ndarray, complement: bool = False) -> np.ndarray:
         """A copy of params whose threshold gives the target's white fraction (after inversion if complement)."""
@@ -249,7 +259,7 @@ class MaskLoss:
         """Binary render (inverted if complement) at the target's size and the loss's realisation (or ``shift``)."""
         p = self.with_threshold(params, complement) if threshold_from_target else np.asarray(params, np.float64)
         m = pp.render_mask(p, self.width, self.height, shift=self.shift if shift is None else shift,
-                           ref_width=int(round(self.width / self.pixel_scale)), pixel_scale=self.pixel_scale)
+                           ref_width=self.ref_width, pixel_scale=self.pixel_scale)
         return ~m if complement else m
 
     def describe(self, mask: np.ndarray) -> np.ndarray:
