@@ -271,22 +271,44 @@ class _Starts:
 
 #: the screening loss sees the target at this scale (a quarter of the pixels; about 0.15 s an evaluation at 256
 #: px against 0.37 s at full size) and may use at most this share of the fit's time
-SCREEN_SCALE, SCREEN_SHARE = 0.5, 0.15
+SCREEN_SCALE, SCREEN_SHARE = 0.5, 0.2
+#: layouts screened in both polarities first; the later ones in the likely polarity, then in the other
+SCREEN_BOTH = 16
+
+
+def likely_complement(lat: Lattice) -> bool:
+    """The polarity a crisp cellular template most likely needs: the complement (white network) when the
+    lattice analysis found a white network that is also the smaller phase, or, without such a network, when
+    the mask is mostly black. A connected majority phase is not taken for the network: rounded cells of a
+    pavement at 74 % white touch through their corners, and the white cells were read as the network."""
+    if network_side_known(lat):
+        return bool(lat.network_is_white)
+    return lat.white_fraction < 0.5
+
+
+def network_side_known(lat: Lattice) -> bool:
+    """The lattice analysis found a connected network that is the smaller phase."""
+    if lat.network_is_white is None:
+        return False
+    return (lat.white_fraction < 0.5) == bool(lat.network_is_white)
 
 
 def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice, cfg: MaskFitConfig,
                       shift, deadline: float) -> tuple[list[tuple[np.ndarray, bool]], int]:
     """(params, complement) of the lattice's layouts to score at full size. Up to cfg.lattice_screen layouts that
-    put cells on the lattice (each in both polarities: a cellular window is high inside cells, a white network
-    needs the complement, and real masks are often broken networks on both sides) are scored on a reduced copy
+    put cells on the lattice (the first SCREEN_BOTH in both polarities: a cellular window is high inside cells, a
+    white network needs the complement, and real masks are often broken networks on both sides; the later ones
+    in the likely polarity (``likely_complement``) before the other) are scored on a reduced copy
     of the target and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a
     herringbone or a pavement is often far down the list of matches, after square grids and bonds at several
     supercells) shows at half size already, for a quarter of the cost. At most max(cfg.lattice_starts,
     cfg.max_evals / 2) are screened. Returns the kept starts and the number of screening evaluations."""
     h, w = target.shape
-    pols = (bool(lat.network_is_white), not lat.network_is_white)
-    cands = [(p, c) for p in pptbf_starts(lat, w, max_matches=max(cfg.lattice_screen, cfg.lattice_starts))
-             for c in pols]
+    likely = likely_complement(lat)
+    layouts = pptbf_starts(lat, w, max_matches=max(cfg.lattice_screen, cfg.lattice_starts))
+    both = layouts[:SCREEN_BOTH]
+    cands = [(p, c) for p in both for c in (likely, not likely)] + \
+        [(p, likely) for p in layouts[SCREEN_BOTH:]] + [(p, not likely) for p in layouts[SCREEN_BOTH:]]
     keep = cfg.lattice_starts
     cands = cands[:max(keep, cfg.max_evals // 2)]
     if len(cands) <= keep or min(h, w) * SCREEN_SCALE < 32:
@@ -510,7 +532,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     now = time.perf_counter()
     win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left),
                         now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
-                        network_known=lat.network_is_white is not None)
+                        network_known=network_side_known(lat))
     b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
     history += win.history
     logger.info("layout fit: window stage from %s (%.4f): %d evals (+%d on the crop) -> %.4f%s, %.1f s into the "
