@@ -39,7 +39,7 @@ from pptbf_db import pptbf as pp
 from .features import GramExtractor, gram_distance
 from .errors import InputError
 from .inpaint import masked_autocorrelation
-from .lattice import Lattice, half_turn, pptbf_starts, radial_profile, split_sibling
+from .lattice import ROW_FAMILIES, Lattice, half_turn, pptbf_starts, radial_profile, split_sibling
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
 from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
 
@@ -48,8 +48,10 @@ logger = logging.getLogger(__name__)
 #: entries that place the cells on the lattice: kept while the window is fitted
 LAYOUT = ("tiling", "resolution", "rotation", "aspect_ratio")
 #: entries left out of the window stage (features and distortion stay at the crisp template's values)
-WINDOW_STAGE_FROZEN = LAYOUT + tuple(n for n in pp.PARAM_NAMES if n.startswith("feature_") and n != "feature_mixture"
-                                     or n.startswith("distortion_"))
+#: (and jitter, which the line search sets within WINDOW_LINES' range: free, the local search drove a noisy real
+#: wall's jitter to 0.49, which scored well by Gram statistics and lost the wall's lattice)
+WINDOW_STAGE_FROZEN = LAYOUT + ("jitter",) + tuple(n for n in pp.PARAM_NAMES if n.startswith("feature_")
+                                                   and n != "feature_mixture" or n.startswith("distortion_"))
 #: pixels of the loss image: masks are area-averaged by an integer factor down to about this width
 LOSS_WIDTH = 128
 
@@ -155,7 +157,7 @@ WINDOW_LINES: dict[str, tuple[float, ...]] = {
     "window_larp": tuple(np.linspace(0.0, 1.0, 9)),
     "window_smoothness": (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0),
     "window_arity": (3.0, 4.0, 5.0, 6.0),
-    "jitter": (0.0, 0.05, 0.1, 0.2, 0.3),
+    "jitter": (0.0, 0.05, 0.1, 0.15, 0.2),
     "window_norm": (1.0, 1.5, 2.0, 2.5, 3.0),
 }
 #: entries refined by halving steps around the best grid value (the others are steps of their own)
@@ -293,17 +295,40 @@ def network_side_known(lat: Lattice) -> bool:
     return (lat.white_fraction < 0.5) == bool(lat.network_is_white)
 
 
-def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice, cfg: MaskFitConfig,
-                      shift, deadline: float) -> tuple[list[tuple[np.ndarray, bool]], int]:
+#: the screening uses the full-resolution crop (``crop_loss``) when it holds this many lattice periods across
+SCREEN_CROP_PERIODS = 4.0
+
+
+def screen_loss(loss: GramMaskLoss, lat: Lattice) -> GramMaskLoss | None:
+    """The loss layouts are screened with, at a quarter of the full loss's pixels: the full-resolution crop
+    when it holds SCREEN_CROP_PERIODS periods of the lattice (a castle wall's 7 px courses at 256 px are a blur
+    at half size, where a square grid screened better than the running bond), else a half-size copy of the
+    target (large plates); None when that copy would be under 32 px."""
+    h, w = loss.target.shape
+    crop = crop_loss(loss)
+    vectors = [float(np.hypot(*v)) for v in lat.vectors] or [0.0]
+    if crop is not None and SCREEN_CROP_PERIODS * max(vectors) <= min(crop.target.shape):
+        return crop
+    if min(h, w) * SCREEN_SCALE < 32:
+        return None
+    sw, sh = int(round(w * SCREEN_SCALE)), int(round(h * SCREEN_SCALE))
+    small_valid = None if loss.valid is None else downsample_mask(loss.valid, sw, sh)
+    return GramMaskLoss(downsample_mask(loss.target, sw, sh), small_valid, shift=loss.shift,
+                        factor=loss_factor(sw, int(LOSS_WIDTH * SCREEN_SCALE)), pixel_scale=SCREEN_SCALE,
+                        extractor=loss.extractor, structure_weight=loss.structure_weight)
+
+
+def _screened_layouts(loss: GramMaskLoss, lat: Lattice, cfg: MaskFitConfig,
+                      deadline: float) -> tuple[list[tuple[np.ndarray, bool]], int]:
     """(params, complement) of the lattice's layouts to score at full size. Up to cfg.lattice_screen layouts that
     put cells on the lattice (the first SCREEN_BOTH in both polarities: a cellular window is high inside cells, a
     white network needs the complement, and real masks are often broken networks on both sides; the later ones
-    in the likely polarity (``likely_complement``) before the other) are scored on a reduced copy
-    of the target and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a
+    in the likely polarity (``likely_complement``) before the other) are scored with ``screen_loss`` (a crop or
+    a half-size copy) and the best cfg.lattice_starts (layout, polarity) pairs kept: the right kind of layout (a
     herringbone or a pavement is often far down the list of matches, after square grids and bonds at several
-    supercells) shows at half size already, for a quarter of the cost. At most max(cfg.lattice_starts,
+    supercells) shows there already, for a quarter of the cost. At most max(cfg.lattice_starts,
     cfg.max_evals / 2) are screened. Returns the kept starts and the number of screening evaluations."""
-    h, w = target.shape
+    w = loss.target.shape[1]
     likely = likely_complement(lat)
     layouts = pptbf_starts(lat, w, max_matches=max(cfg.lattice_screen, cfg.lattice_starts))
     both = layouts[:SCREEN_BOTH]
@@ -311,12 +336,9 @@ def _screened_layouts(target: np.ndarray, valid: np.ndarray | None, lat: Lattice
         [(p, likely) for p in layouts[SCREEN_BOTH:]] + [(p, not likely) for p in layouts[SCREEN_BOTH:]]
     keep = cfg.lattice_starts
     cands = cands[:max(keep, cfg.max_evals // 2)]
-    if len(cands) <= keep or min(h, w) * SCREEN_SCALE < 32:
+    screen = None if len(cands) <= keep else screen_loss(loss, lat)
+    if screen is None:
         return cands[:keep], 0
-    sw, sh = int(round(w * SCREEN_SCALE)), int(round(h * SCREEN_SCALE))
-    small_valid = None if valid is None else downsample_mask(valid, sw, sh)
-    screen = GramMaskLoss(downsample_mask(target, sw, sh), small_valid, shift=shift,
-                          factor=loss_factor(sw, int(LOSS_WIDTH * SCREEN_SCALE)), pixel_scale=SCREEN_SCALE)
     scored, n = [], 0
     for i, (p, c) in enumerate(cands):
         if time.perf_counter() > deadline:
@@ -348,8 +370,7 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
     entries (both polarities, threshold from the target)."""
     out = _Starts([], [])
     t0 = time.perf_counter()
-    layouts, out.screened = _screened_layouts(target, valid, lat, cfg, loss.shift,
-                                              t0 + SCREEN_SHARE * cfg.time_budget_s)
+    layouts, out.screened = _screened_layouts(loss, lat, cfg, t0 + SCREEN_SHARE * cfg.time_budget_s)
     out.screen_seconds = time.perf_counter() - t0
     starts = [(p, c, "lattice") for p, c in layouts]
     matches = []
@@ -499,6 +520,17 @@ def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadlin
     return b
 
 
+def _layouts_first(scored: list, lat: Lattice) -> list:
+    """The scored starts (best first) with, on a 2-D lattice, the random-cut row families after the layouts
+    that repeat in two directions: rows with random cuts share only the rows of a 2-D lattice (the lattice gate
+    accepts them on the row spacing), and on a noisy real wall they win by Gram statistics while the picture
+    loses the courses' bond (castle_brick_broken_06's mortar: random bricks against a running bond)."""
+    if lat.kind != "2d":
+        return scored
+    rows = [s for s in scored if int(s[2][pp.PARAM_INDEX["tiling"]]) in ROW_FAMILIES]
+    return [s for s in scored if int(s[2][pp.PARAM_INDEX["tiling"]]) not in ROW_FAMILIES] + rows
+
+
 def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice, cfg: MaskFitConfig,
                seed: int) -> MaskFit:
     """Lattice-first fit of a bool target (HxW at the fit resolution); see the module doc."""
@@ -518,8 +550,9 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     stage_deadline = deadline - reserve * per_eval * 2
     cands = [(s[0], s[1], s[2], s[3], True) for s in scored[:2]]
     # window stage from the best start that keeps the lattice (else the best lattice start, else the best)
-    kept = _lattice_gate(loss, lat, scored, at_most=GATE_CHECKS, first=True)
-    lat_best = kept[0] if kept else next((s for s in scored if s[3] == "lattice"), scored[0])
+    ordered = _layouts_first(scored, lat)
+    kept = _lattice_gate(loss, lat, ordered, at_most=GATE_CHECKS, first=True)
+    lat_best = kept[0] if kept else next((s for s in ordered if s[3] == "lattice"), scored[0])
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
         now = time.perf_counter()
