@@ -522,9 +522,11 @@ def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadlin
 
 def _layouts_first(scored: list, lat: Lattice) -> list:
     """The scored starts (best first) with, on a 2-D lattice, the random-cut row families after the layouts
-    that repeat in two directions: rows with random cuts share only the rows of a 2-D lattice (the lattice gate
-    accepts them on the row spacing), and on a noisy real wall they win by Gram statistics while the picture
-    loses the courses' bond (castle_brick_broken_06's mortar: random bricks against a running bond)."""
+    that repeat in two directions, for the choice of the window stage's start: rows with random cuts share only
+    the rows of a 2-D lattice (the lattice gate accepts them on the row spacing), and on a noisy real wall an
+    ashlar start won by Gram statistics and its window stage lost the courses (castle_brick_broken_06's
+    mortar). They stay candidates of their own (on that wall a random-bond start still wins, keeping the
+    courses: period error 1.3 %)."""
     if lat.kind != "2d":
         return scored
     rows = [s for s in scored if int(s[2][pp.PARAM_INDEX["tiling"]]) in ROW_FAMILIES]
