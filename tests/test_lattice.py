@@ -123,3 +123,18 @@ def test_degenerate_basis_has_no_points():
         assert c.shape == (0, 2) and p.shape == (0, 2)
     c, p = _lattice_points(np.array([[10.0, 0.0], [0.0, 10.0]]), 25.0)
     assert len(p) == 20 and np.linalg.norm(p, axis=1).max() <= 25.0   # (+-1|+-2, 0|..) within radius 25
+
+
+def test_rows_of_random_heights_have_their_mean_height():
+    """An ashlar (rows of random heights, 35 px on average) repeats in the autocorrelation only every few rows;
+    the rows' mean height (network lines crossed across the rows) is within 10 % of 35 px, and match_tilings
+    offers the ashlars at that height first (bench/layout.py's target 3; other ashlars read as a spurious 2-D
+    lattice and are not helped)."""
+    p = L.layout_params(L.LatticeMatch(6, 35.0, 1.293, 0.778, 0.0), 0.591, larp=0.721)
+    for name, v in (("jitter", 0.053), ("window_arity", 5.0), ("window_smoothness", 0.31)):
+        p[pp.PARAM_INDEX[name]] = v
+    lat = L.analyse_lattice(pp.render_mask(p, 256, 256, shift=(3.887, 7.116)))
+    assert lat.kind == "rows" and lat.row_height is not None
+    assert abs(lat.row_height - 35.25) <= 0.1 * 35.25, (lat.row_spacing, lat.row_height)
+    first = L.match_tilings(lat)[0]
+    assert first.tiling in (6, 7) and abs(first.resolution - lat.row_height) < 1e-9

@@ -73,6 +73,7 @@ class Lattice:
     network_width: float | None = None          # width (px) of the thin connected phase (mortar), if any
     network_is_white: bool | None = None        # True when the mask's white pixels form that network
     white_fraction: float = 0.0
+    row_height: float | None = None             # rows: mean distance between network lines across the rows (px)
 
     @property
     def period(self) -> float | None:
@@ -258,7 +259,19 @@ def _network(mask: np.ndarray) -> tuple[float | None, bool | None]:
 
 
 def analyse_lattice(mask, config: LatticeConfig | None = None) -> Lattice:
-    """Lattice of a binary mask (HxW): basis vectors, regularity, rows, network width (see module doc)."""
+    """Lattice of a binary mask (HxW): basis vectors, regularity, rows, network width (see module doc); for rows,
+    also their mean height (``mean_line_spacing`` across them: rows of random heights repeat far less often)."""
+    lat = _analyse(mask, config)
+    if lat.kind == "rows":
+        m = np.asarray(mask)
+        m = m > 0.5 if m.dtype != bool else m
+        white = lat.network_is_white if lat.network_is_white is not None else lat.white_fraction < 0.5
+        lat.row_height = mean_line_spacing(m, lat.vectors[0], bool(white))
+    return lat
+
+
+def _analyse(mask, config: LatticeConfig | None) -> Lattice:
+    """analyse_lattice without the rows' mean height."""
     cfg = config or LatticeConfig()
     m = np.asarray(mask)
     if m.ndim != 2 or min(m.shape) < 16:
@@ -302,6 +315,29 @@ def analyse_lattice(mask, config: LatticeConfig | None = None) -> Lattice:
                            orientation_deg=float(ang % 180.0), **base)
     reg = max(best2[0] if best2 else 0.0, s1, 0.0)
     return Lattice(kind="none", vectors=[], regularity=float(reg), significance=float(max(z1, z2)), **base)
+
+
+def mean_line_spacing(mask: np.ndarray, direction, network_is_white: bool, step: int = 8) -> float | None:
+    """Mean distance (px) between the network lines that straight paths along `direction` cross (paths from
+    every `step`-th pixel, 4x the mask's size long, wrapping): the length walked over the number of entries
+    into the network. Across rows it is the mean row height, which the autocorrelation cannot give when rows
+    have random heights (an ashlar of 35 px rows: 36.5 px here against a 114 px repeat in the autocorrelation;
+    random bricks of 15.25 px rows: 15.9 px). None when no line is crossed."""
+    h, w = mask.shape
+    u = np.asarray(direction, dtype=np.float64)
+    u = u / max(float(np.linalg.norm(u)), 1e-12)
+    net = mask if network_is_white else ~mask
+    t = np.arange(4 * max(h, w), dtype=np.float64)
+    ys, xs = np.meshgrid(np.arange(0, h, step), np.arange(0, w, step), indexing="ij")
+    y = ((ys.ravel()[:, None] + t[None, :] * u[1]) % h).astype(np.int64)
+    x = ((xs.ravel()[:, None] + t[None, :] * u[0]) % w).astype(np.int64)
+    s = net[y, x]
+    entries = int((s[:, 1:] & ~s[:, :-1]).sum())
+    return float(s.size / entries) if entries else None
+
+
+#: the rows' own repeat and their mean height differ by more than this when the rows have random heights
+ROW_HEIGHT_GAP = 0.15
 
 
 def _refine_rows(ac: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:
@@ -519,6 +555,10 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         r = float(np.linalg.norm(v))
         aspects = ROW_ASPECTS if lat.row_vector is None else \
             (float(np.linalg.norm(lat.row_vector)) / r,) + ROW_ASPECTS
+        h = lat.row_height
+        if h and abs(h - r) > ROW_HEIGHT_GAP * r:      # rows of random heights: the ashlars at the mean height
+            out += [LatticeMatch(t, h, aspect, (alpha / math.pi) % 2.0, 0.0) for aspect in aspects
+                    for t in ROW_FAMILIES if t not in FIXED_ROW_FAMILIES]
         for aspect in aspects:
             for t in ROW_FAMILIES + (4, 0):
                 out.append(LatticeMatch(t, r, aspect, (alpha / math.pi) % 2.0, 0.0))
