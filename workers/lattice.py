@@ -317,6 +317,10 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
     return Lattice(kind="none", vectors=[], regularity=float(reg), significance=float(max(z1, z2)), **base)
 
 
+#: at most this many paths of at most this many pixels in ``mean_line_spacing`` (a few MB at any mask size)
+MAX_PATHS, MAX_PATH_LENGTH = 1024, 4096
+
+
 def mean_line_spacing(mask: np.ndarray, direction, network_is_white: bool, step: int = 8) -> float | None:
     """Mean distance (px) between the network lines that straight paths along `direction` cross (paths from
     every `step`-th pixel, 4x the mask's size long, wrapping): the length walked over the number of entries
@@ -327,7 +331,8 @@ def mean_line_spacing(mask: np.ndarray, direction, network_is_white: bool, step:
     u = np.asarray(direction, dtype=np.float64)
     u = u / max(float(np.linalg.norm(u)), 1e-12)
     net = mask if network_is_white else ~mask
-    t = np.arange(4 * max(h, w), dtype=np.float64)
+    step = max(int(step), int(math.ceil(math.sqrt(h * w / MAX_PATHS))))     # bounded memory on large masks
+    t = np.arange(min(4 * max(h, w), MAX_PATH_LENGTH), dtype=np.float64)
     ys, xs = np.meshgrid(np.arange(0, h, step), np.arange(0, w, step), indexing="ij")
     y = ((ys.ravel()[:, None] + t[None, :] * u[1]) % h).astype(np.int64)
     x = ((xs.ravel()[:, None] + t[None, :] * u[0]) % w).astype(np.int64)
