@@ -6,7 +6,7 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
 
 1. ``workers.lattice`` measures the target's lattice and turns it into starting vectors: tiling families whose
    cells sit on that lattice, with period, aspect and rotation solved for, and a crisp cellular window (up to
-   60 layouts in both polarities, screened on a half-size copy of the target, the best 14 kept); the
+   60 layouts, screened on a quarter of the pixels (``screen_loss``), the best 14 kept); the
    database's nearest entries (both polarities) join them as further starts, and so do transplants: the best
    lattice starts' placement of cells (tiling, period, rotation, aspect, jitter, distortion) with a database
    entry's look (cell window and features), for looks the crisp template cannot express.
