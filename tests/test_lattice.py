@@ -47,6 +47,19 @@ def test_domain_lattices_match_renders(tiling):
         for m in L.match_tilings(lat)), (lat.vectors, errs)
 
 
+@pytest.mark.parametrize("rotation", [0.0, 1.945])
+def test_three_to_one_herringbone_near_lattices(rotation):
+    """A 3:1 herringbone shows one of three near-lattices depending on its rotation (at aspect 0.70, period
+    66 px); its own layout is the best match either way. With only one of them in the table, the layout at
+    rotation 1.945 was not matched at all (the fit took a supercell: period 114 px, aspect 0.35)."""
+    res, aspect = 66.0, 0.70
+    lat = L.analyse_lattice(_render(13, res, aspect, rotation, white=0.8))
+    best = next(m for m in L.match_tilings(lat) if m.tiling in (12, 13))
+    turn = abs(best.rotation - rotation) % 1.0            # the half turn is tried by the fit
+    assert abs(best.resolution - res) / res < 0.03 and abs(best.aspect - aspect) / aspect < 0.03, best
+    assert min(turn, 1.0 - turn) < 0.01, best
+
+
 def test_running_bond_rows_offset_orientation_and_match():
     m = _render(4, 18, aspect=2.2, rotation=0.05, white=0.8)
     lat = L.analyse_lattice(m)

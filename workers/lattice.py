@@ -407,6 +407,9 @@ def _cuts_random(ac: np.ndarray, b: np.ndarray, row: np.ndarray, radius: float) 
 #: Families 6-9 (random cuts along rows) repeat along their rows only. Checked against renders in tests.
 Basis = tuple[tuple[float, float], tuple[float, float]]
 DOMAIN_LATTICE: dict[int, tuple[Basis, ...]] = {}
+#: how many of a family's first DOMAIN_LATTICE entries are its own (near-)lattices, matched without the
+#: ALTERNATIVE_PENALTY of the later ones (1 unless listed)
+NEAR_LATTICES: dict[int, int] = {}
 #: families with a lattice of rows only (random cuts along each row): row spacing 1 domain unit along y
 ROW_FAMILIES = (6, 7, 8, 9)
 #: the row families whose rows keep one height (random bricks; the ashlars 6-7 cut rows at random heights too, so
@@ -425,12 +428,19 @@ def _fill_domain_lattices() -> None:
     pythagorean = ((0.2, 0.4), (-0.4, 0.2))
     DOMAIN_LATTICE.update({t: (pythagorean, square) for t in (14, 15)})
     herring2 = ((0.25, 0.25), (-0.5, 0.5))
-    herring3 = (((0.5, -0.5), (0.5, 0.5)), ((-2.0 / 3.0, 1.0 / 3.0), (0.0, 1.0)),
-                ((1.0 / 6.0, 1.0 / 6.0), (0.5, -0.5)))
+    # the 3:1 herringbones: renders show either their exact lattice ((4/3, 1/3), (1/3, 4/3)) or one of three
+    # near-lattices of a third of its cell, the index-3 sub-lattices of ((1/6, 1/6), (1/2, -1/2)) that hold
+    # (1/2, 1/2), which one depending on aspect, period and rotation (at aspect 0.70, period 66 px: (-2/3, 1/3)
+    # at rotation 0, (-5/6, 1/6) at 1.945, the exact one on another draw); all four are the family's own
+    # (NEAR_LATTICES), the two coarser ones alternatives
+    s = 1.0 / 6.0
+    herring3 = (((0.5, -0.5), (0.5, 0.5)), ((-3 * s, -3 * s), (4 * s, -2 * s)), ((3 * s, 3 * s), (2 * s, -4 * s)),
+                ((8 * s, 2 * s), (2 * s, 8 * s)), ((-2.0 / 3.0, 1.0 / 3.0), (0.0, 1.0)), ((s, s), (0.5, -0.5)))
     DOMAIN_LATTICE.update({
         4: (((1.0, 0.0), (0.5, 1.0)),), 5: (((1.0, 0.0), (1.0 / 3.0, 1.0)),),
         10: (herring2,), 11: (herring2,), 12: herring3, 13: herring3,
     })
+    NEAR_LATTICES.update({12: 4, 13: 4})
 
 
 _fill_domain_lattices()
@@ -574,7 +584,8 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         for j, D in enumerate(alts):
             for k, S in enumerate(SUPERCELLS):
                 found = _layouts_for(T, np.array(D, dtype=np.float64).T @ S, t, max_error, width, k > 0)
-                out += [replace(m, error=m.error + ALTERNATIVE_PENALTY * j) for m in found]
+                pen = ALTERNATIVE_PENALTY * max(0, j + 1 - NEAR_LATTICES.get(t, 1))
+                out += [replace(m, error=m.error + pen) for m in found]
     out.sort(key=lambda m: (m.supercell, round(m.error, 3), _misalignment(m, lat), m.aspect + 1.0 / m.aspect))
     uniq: list[LatticeMatch] = []
     for m in out:   # the same layout reached through several bases: keep one
