@@ -115,6 +115,23 @@ def test_window_lines_find_the_cell_shape():
     assert loss.mean_at(x, False, True, shifts) <= 1.5 * floor
 
 
+def test_window_lines_reach_the_split_sibling():
+    """A split pavement (17) from the crisp template of its unsplit sibling (16), half-turned (the start a fit
+    got on bench target 14): each layout on the lattice gets its own short line search first, so the search ends
+    on the split pavement (trying the sibling only at the cell shape fitted to 16 kept 16: ratio 4.8)."""
+    p = L.layout_params(L.LatticeMatch(17, 32.0, 0.83, 0.826, 0.0), 0.79, larp=0.63)
+    p[pp.PARAM_INDEX["window_smoothness"]], p[pp.PARAM_INDEX["window_arity"]] = 0.37, 3.0
+    target = pp.render_mask(p, 256, 256, shift=(2.5, 6.1))
+    start = L.layout_params(L.LatticeMatch(16, 32.0, 0.83, 1.826, 0.0), 0.79)
+    loss = GramMaskLoss(target, factor=2)
+    crop = crop_loss(loss)
+    b = Budget(lambda q: crop(q, False), 150, float("inf"))
+    x = window_lines(b, start, cycles=1)
+    shifts = [(11.1, 5.5), (21.0, 3.0)]
+    assert int(x[pp.PARAM_INDEX["tiling"]]) == 17, x
+    assert loss.mean_at(x, False, True, shifts) <= 2.0 * loss.mean_at(p, False, True, shifts)
+
+
 def test_tiny_budget_is_respected(bundled_index):
     _, target = _bond(size=64, res=8)
     fit = fit_pptbf_mask(target, bundled_index, config=MaskFitConfig(max_evals=8, rounds=1, time_budget_s=10))
