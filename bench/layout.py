@@ -49,6 +49,8 @@ HAND_BUILT: dict[str, dict] = {
                                 window_smoothness=0.5, jitter=0.05, complement=True),
     "roof_slate_edges": dict(tiling=8, resolution=10, aspect_ratio=1.0, rotation=0.0, window_larp=1.0,
                              window_smoothness=0.0, jitter=0.0, complement=True),
+    "roof_slate_edges_fine": dict(tiling=8, resolution=11, aspect_ratio=1.5, rotation=0.0, window_larp=1.0,
+                                  window_smoothness=0.0, jitter=0.0, complement=True),
     "metal_plate_seams": dict(tiling=4, resolution=61, aspect_ratio=0.7, rotation=0.0, window_larp=1.0,
                               window_smoothness=0.0, jitter=0.0, complement=True),
 }
@@ -159,7 +161,8 @@ def run_real(args, index, panels: Path | None) -> list[dict]:
     rows = []
     print(f"\n{'mask':<22} {'kind':>5} {'period':>6} | {'fit per':>7} {'per%':>5} {'ang':>5} | {'fit':>6} "
           f"{'hand':>6} {'ratio':>5} {'r+lay':>5} | {'s':>4}")
-    for name in ("castle_brick_mortar", "roof_slate_edges", "metal_plate_seams", "rusty_metal_rust"):
+    for name in ("castle_brick_mortar", "roof_slate_edges", "roof_slate_edges_fine", "metal_plate_seams",
+                 "rusty_metal_rust"):
         m = imread(folder / f"{name}.png")
         m = (m[..., 0] if m.ndim == 3 else m) > 127
         target = downsample_mask(m, SIZE, SIZE)

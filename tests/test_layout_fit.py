@@ -138,6 +138,26 @@ def test_tiny_budget_is_respected(bundled_index):
     assert fit.meta["method"] == "lattice" and fit.evaluations <= 8 and len(fit.history) == fit.evaluations
 
 
+def test_lattice_lost_in_the_downsample_is_measured_at_full_size(bundled_index):
+    """roof_slates_02's slate edges as its structural split cuts them at working size 512 (make.py there): the
+    lattice shows at 512 px and not at the 256 px fit size; it is measured at 512 px and scaled, so the fit
+    takes the layout path (the query path gave diagonal dashes) with the slates' period (21.5 px / 2)."""
+    from pathlib import Path
+
+    from skimage.io import imread
+
+    from workers.masks import _lattice_above_fit_size, downsample_mask
+
+    m = imread(Path(__file__).resolve().parent / "data" / "structure_masks" / "roof_slate_edges_fine.png") > 127
+    small = downsample_mask(m, 256, 256)
+    assert L.analyse_lattice(small).kind == "none"
+    lat = _lattice_above_fit_size(m, small.shape)
+    assert lat is not None and lat.kind == "2d" and abs(lat.period - 21.5 / 2) / 10.75 < 0.03, lat
+    assert _lattice_above_fit_size(small, small.shape) is None
+    fit = fit_pptbf_mask(m, bundled_index, config=MaskFitConfig(max_evals=8, rounds=1, time_budget_s=10))
+    assert fit.meta["method"] == "lattice" and abs(fit.meta["lattice"]["period"] - lat.period) < 1e-6
+
+
 def test_noise_like_mask_keeps_query_path(bundled_index):
     from scipy import ndimage
 

@@ -80,6 +80,16 @@ class Lattice:
         """The shortest lattice vector's length (px), None without a lattice."""
         return float(min(math.hypot(*v) for v in self.vectors)) if self.vectors else None
 
+    def scaled(self, factor: float) -> "Lattice":
+        """The lattice as measured on the mask resized by `factor`: vectors and lengths scaled, the rest kept."""
+        def sc(x):
+            return None if x is None else float(x) * factor
+        return replace(self, vectors=[(a * factor, b * factor) for a, b in self.vectors],
+                       row_vector=None if self.row_vector is None else
+                       (self.row_vector[0] * factor, self.row_vector[1] * factor),
+                       row_spacing=sc(self.row_spacing), network_width=sc(self.network_width),
+                       row_height=sc(self.row_height))
+
     def to_dict(self) -> dict:
         """JSON-able form."""
         d = asdict(self)

@@ -405,6 +405,33 @@ def _prepare_target(mask, valid, fit_width: int) -> tuple[np.ndarray, np.ndarray
     return target, valid_s
 
 
+#: a mask larger than the fit size is analysed again at up to this width when the fit size shows no lattice
+LATTICE_ANALYSIS_WIDTH = 1024
+
+
+def _lattice_above_fit_size(mask: np.ndarray, fit_shape_hw: tuple[int, int]):
+    """The lattice of a mask larger than the fit size, measured at up to LATTICE_ANALYSIS_WIDTH px and scaled to
+    the fit size, when it has one there whose period stays representable (>= the analysis' minimum period);
+    else None. A noisy real layout can lose its repeat in the downsample to the fit size (roof_slate_02's
+    decomposition mask at working size 512: significance 2.72 at 512 px, 2.25 at 256 px), while its cells are
+    still several pixels wide there."""
+    from .lattice import LatticeConfig, analyse_lattice
+
+    h, w = mask.shape
+    if w <= fit_shape_hw[1]:
+        return None
+    aw, ah = fit_shape((h, w), LATTICE_ANALYSIS_WIDTH)
+    lat = analyse_lattice(downsample_mask(mask, aw, ah))
+    if lat.kind == "none":
+        return None
+    lat = lat.scaled(fit_shape_hw[1] / aw)
+    if (lat.period or 0.0) < LatticeConfig().min_period:
+        return None
+    logger.info("mask: lattice found at %d px (not at the fit size), scaled to %d px: period %.1f px", aw,
+                fit_shape_hw[1], lat.period)
+    return lat
+
+
 def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit | None:
     """The lattice-first fit when the mask (fully known or nearly) has a lattice, else None."""
     from .lattice import analyse_lattice
@@ -414,6 +441,8 @@ def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit 
     if valid_s is not None and valid_s.mean() < 0.9:
         return None
     lat = analyse_lattice(target)
+    if lat.kind == "none":
+        lat = _lattice_above_fit_size(_check_mask(mask, "mask"), target.shape) or lat
     if lat.kind == "none":
         logger.info("mask has no lattice (regularity %.2f): query-and-optimise fit", lat.regularity)
         return None
