@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from workers import budget
+from .placement import DEVICES
 from workers.errors import ManifestError, ProceduralizeError
 
 STAGES = ("load", "decompose", "noise", "masks", "recompose", "output")
@@ -47,7 +48,6 @@ _CHANNEL_RE = re.compile(r"^([RGBA]|[0-9]|[A-Za-z][A-Za-z0-9_.]*)$")
 
 JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors", "description", "pptbf_database",
             "gpu_wait_s", "recompose_cpus", "stage_timeout", "memory_budget"}
-RECOMPOSE_DEVICES = ("auto", "cuda", "cpu")
 #: seconds one stage item may run before it is cancelled and its material fails (job.stage_timeout)
 DEFAULT_STAGE_TIMEOUT_S = 3600.0
 MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "metallic_channel",
@@ -484,8 +484,6 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
             if fields is not None:
                 probs.unknown(f"{where}.{key}", set(c), fields)
                 _check_options(key, c, f"{where}.{key}", probs)
-        if key == "recompose" and c.get("device", "auto") not in RECOMPOSE_DEVICES:
-            probs.add(f"{where}.recompose.device", f"must be one of {list(RECOMPOSE_DEVICES)}, got {c['device']!r}")
         confs[key] = c
     stages = _stage_list(merged.get("stages"), f"{where}.stages", probs)
     out_name = raw.get("output", name or f"material_{i}")
@@ -611,14 +609,9 @@ def _nlopt_algorithm(v: str) -> bool:
     return bool(re.fullmatch(r"LN_[A-Z_]+", v)) and hasattr(nlopt, v)
 
 
-def _torch_device(v: str) -> bool:
-    """auto, cpu, cuda or cuda:N"""
-    return bool(re.fullmatch(r"auto|cpu|cuda(:[0-9]{1,2})?", v))
-
-
 #: string options with a closed set of values (stage, option) -> check
 _CHOICES: dict[tuple[str, str], Callable[[str], bool]] = {
-    ("recompose", "optimizer"): _one_of("adam", "lbfgs"), ("recompose", "device"): _torch_device,
+    ("recompose", "optimizer"): _one_of("adam", "lbfgs"), ("recompose", "device"): _one_of(*DEVICES),
     ("masks", "algorithm"): _nlopt_algorithm, ("masks", "incomplete"): _one_of("known", "inpaint"),
     ("recompose", "optimise"): _one_of("filters", "blend", "level", "blur")}
 

@@ -125,6 +125,26 @@ output = "../../etc"
     assert str(tmp_path / "job.toml") in str(ei.value)
 
 
+@pytest.mark.parametrize("device", ["gpu", "cuda:0"])
+def test_recompose_device_is_one_the_placement_routes(tmp_path, device):
+    """recompose.device takes the values the Ray placement routes (service.placement.DEVICES), reported once:
+    "cuda:0" passed one check and failed the other, "gpu" was reported twice."""
+    text = f"""
+[job]
+name = "d"
+output = "out"
+
+[[materials]]
+name = "a"
+albedo = "a.png"
+recompose = {{ device = "{device}" }}
+"""
+    with pytest.raises(ManifestError) as ei:
+        load_manifest(_write(tmp_path, text))
+    assert [p for p in ei.value.problems if "recompose.device" in p and "a.png" not in p] != []
+    assert sum("recompose.device" in p for p in ei.value.problems) == 1, ei.value.problems
+
+
 @pytest.mark.parametrize("out", ["/tmp/elsewhere", "../outside", "a/../../b", "."])
 def test_material_output_must_stay_inside_job_output(tmp_path, out):
     doc = {"job": {"name": "j", "output": "o"}, "materials": [{"name": "m", "albedo": "a.png", "output": out}]}
