@@ -1,7 +1,7 @@
 """Benchmark the structure-faithful mask fit on synthetic regular targets and on real structure masks.
 
 Run: python bench/layout.py [--n 30] [--seed 0] [--budget 60] [--evals 150] [--real] [--no-synthetic]
-     [--panels DIR] [--families 0,4,5,...]
+     [--panels DIR] [--families 0,4,5,...] [--only 3,4,18]
 
 Synthetic (issue acceptance): n regular targets at 256 px from known parameters, cycling over the tiling
 families square 0, running bond 4, thirds 5, irregular rows 6-9, herringbone 10-13, Pythagorean 14-15 and
@@ -121,6 +121,8 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
         t = fams[k % len(fams)]
         p = synthetic_target(rng, t)
         target = pp.render_mask(p, SIZE, SIZE, shift=tuple(rng.uniform(0, 8, 2)))
+        if args.only and k not in args.only:
+            continue
         fit, secs, out, lt, lo, per, ang, loss = fit_and_compare(target, target, index, args, k)
         (d_fit, l_fit), (d_true, l_true) = scores(loss, fit.params, fit.complement), scores(loss, p, False)
         truth_ok = lattice_ok(*L.compare_lattices(lt, L.analyse_lattice(pp.render_mask(p, SIZE, SIZE,
@@ -210,6 +212,8 @@ def main() -> int:
     ap.add_argument("--budget", type=float, default=MaskFitConfig.time_budget_s, help="seconds per fit")
     ap.add_argument("--evals", type=int, default=MaskFitConfig.max_evals, help="evaluations per fit")
     ap.add_argument("--families", default=None, help="comma-separated tilings (default: all listed)")
+    ap.add_argument("--only", type=lambda v: {int(x) for x in v.split(",")}, default=None, metavar="K,K",
+                    help="fit only these targets of the n (the same targets as in a full run)")
     ap.add_argument("--real", action="store_true", help="also the real structure masks")
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--panels", type=Path, default=None, metavar="DIR", help="write target | fit PNGs here")
