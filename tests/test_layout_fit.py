@@ -132,6 +132,25 @@ def test_window_lines_reach_the_split_sibling():
     assert loss.mean_at(x, False, True, shifts) <= 2.0 * loss.mean_at(p, False, True, shifts)
 
 
+def test_lattice_gate_keeps_random_bricks_on_their_rows():
+    """Random bricks (bench target 20): fresh realisations of the true parameters read as having no lattice, so
+    the gate turned the true layout away (the fit ended at 5.8x the truth's Gram distance); they repeat at the
+    target's rows (``row_repeat``) and pass now, while rows 20 % taller do not."""
+    from workers.layout_fit import _keeps_lattice
+
+    I = pp.PARAM_INDEX
+    p = L.layout_params(L.LatticeMatch(8, 19.0, 1.07, 1.047, 0.0), 0.58, larp=0.98)
+    p[I["jitter"]] = 0.057
+    target = pp.render_mask(p, 256, 256, shift=(3.1, 0.4))
+    lat = L.analyse_lattice(target)
+    assert lat.kind == "rows"
+    loss = GramMaskLoss(target, factor=2)
+    assert _keeps_lattice(loss, lat, (0.0, False, loss.with_threshold(p, False)))
+    taller = p.copy()
+    taller[I["resolution"]] *= 1.2
+    assert not _keeps_lattice(loss, lat, (0.0, False, loss.with_threshold(taller, False)))
+
+
 def test_tiny_budget_is_respected(bundled_index):
     _, target = _bond(size=64, res=8)
     fit = fit_pptbf_mask(target, bundled_index, config=MaskFitConfig(max_evals=8, rounds=1, time_budget_s=10))

@@ -327,6 +327,16 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
     return Lattice(kind="none", vectors=[], regularity=float(reg), significance=float(max(z1, z2)), **base)
 
 
+def row_repeat(mask: np.ndarray, lat: Lattice) -> float:
+    """How strongly `mask` repeats at the rows of `lat` (kind "rows"): its autocorrelation at the row vector and
+    twice it, above the ring mean, in ring standard deviations. Realisations of rows with random cuts (random
+    bricks at the true parameters: 1.4-1.7) often read as no lattice in ``analyse_lattice``, while rows 20 %
+    taller or shorter score 0.2-0.4 here."""
+    ac = autocorrelation(mask)
+    v = np.asarray(lat.vectors[0], dtype=np.float64)
+    return _contrast(ac, radial_profile(ac), v[None] * np.arange(1, 3)[:, None], z=True)
+
+
 #: at most this many paths of at most this many pixels in ``mean_line_spacing`` (a few MB at any mask size)
 MAX_PATHS, MAX_PATH_LENGTH = 1024, 4096
 
