@@ -504,10 +504,11 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     """Layout frozen: the cell shape by line search (``window_lines``) on the crop, one cycle in each polarity
     unless the lattice analysis knows which side is the network (the crisp template may prefer the complement
     that the target's own cell shape does not: a pavement with round 16-sector cells), more cycles in the
-    better one, after the short line search of each layout on the lattice (``_scan_layouts``: run in both
-    polarities it took the whole budget, and a pavement's cell shape was lost, ratio 1.15 -> 6.2); then the window entries by local search (window shape and mixture by sweep) at full size from
-    the line search's best or its half turn or split sibling, whichever scores best at full size (the crop ranks
-    them less surely). Without a crop the line search runs on the full-size loss, counted."""
+    better one, after the short line search of each layout on the lattice (``_scan_layouts``; run in both
+    polarities it took the whole budget and a pavement's cell shape was lost); then the window entries by local
+    search (window shape and mixture by sweep) at full size from the line search's best or its half turn or
+    split sibling, whichever scores best at full size (the crop ranks them less surely). Without a crop the line
+    search runs on the full-size loss, counted."""
     own, compl, x0, _ = start
     compl = bool(compl)
     pols = (compl,) if network_known else (compl, not compl)

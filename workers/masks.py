@@ -33,7 +33,7 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from scipy import ndimage
@@ -43,6 +43,9 @@ from pptbf_db import pptbf as pp
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
 from .mask_opt import Budget, OptSettings, explore, optimise
+
+if TYPE_CHECKING:
+    from .lattice import Lattice
 
 logger = logging.getLogger(__name__)
 
@@ -409,7 +412,7 @@ def _prepare_target(mask, valid, fit_width: int) -> tuple[np.ndarray, np.ndarray
 LATTICE_ANALYSIS_WIDTH = 1024
 
 
-def _lattice_above_fit_size(mask: np.ndarray, fit_shape_hw: tuple[int, int]):
+def _lattice_above_fit_size(mask: np.ndarray, fit_shape_hw: tuple[int, int]) -> Lattice | None:
     """The lattice of a mask larger than the fit size, measured at up to LATTICE_ANALYSIS_WIDTH px and scaled to
     the fit size, when it has one there whose period stays representable (>= the analysis' minimum period);
     else None. A noisy real layout can lose its repeat in the downsample to the fit size (roof_slate_02's
