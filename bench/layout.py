@@ -11,7 +11,7 @@ random cellular window (larp, smoothness, sector count) and threshold. Each is f
   lat      period error (%) and angle error (deg) of a fresh realisation's lattice against the target's
            (workers.lattice.compare_lattices); acceptance: period within 5 % and angle within 3 deg on >= 90 %
   tru      whether a fresh realisation of the true parameters passes that check itself (where it does not, the
-           target has no lattice that survives a redraw and the check cannot be met by any fit)
+           target has no lattice that survives a redraw and the check is a matter of chance for any fit)
   family   the fit's tiling family is the truth's (or one of the same group: workers.lattice.TILING_GROUPS)
   ratio    VGG-19 Gram distance of 2 fresh realisations of the fit / that of 2 fresh realisations of the true
            parameters (the floor a perfect fit scores); acceptance: <= 1.5 on >= 80 %

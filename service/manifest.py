@@ -34,8 +34,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 from workers import budget
-from .placement import DEVICES
 from workers.errors import ManifestError, ProceduralizeError
+
+from .placement import DEVICES
 
 STAGES = ("load", "decompose", "noise", "masks", "recompose", "output")
 MAP_KEYS = ("albedo", "normal", "roughness", "height", "metallic")

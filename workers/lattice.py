@@ -312,7 +312,7 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
     v1, s1 = _rows_vector(ac, prof, cand, cfg, radius) if len(cand) else (None, -1.0)
     z2 = _score(ac, prof, best2[1], radius, z=True) if best2 is not None else -1.0
     v = _refine_rows(ac, v1, radius) if v1 is not None else None
-    z1 = _contrast(ac, prof, v[None] * np.arange(1, 3)[:, None], z=True) if v is not None else -1.0
+    z1 = _rows_z(ac, prof, v) if v is not None else -1.0
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
     # points carry at least rows_ratio of the strongest vector's contrast (real walls drift from row to row)
     if max(z1, z2) >= cfg.min_significance and best2 is not None and best2[0] >= cfg.rows_ratio * s1:
@@ -333,8 +333,12 @@ def row_repeat(mask: np.ndarray, lat: Lattice) -> float:
     bricks at the true parameters: 1.4-1.7) often read as no lattice in ``analyse_lattice``, while rows 20 %
     taller or shorter score 0.2-0.4 here."""
     ac = autocorrelation(mask)
-    v = np.asarray(lat.vectors[0], dtype=np.float64)
-    return _contrast(ac, radial_profile(ac), v[None] * np.arange(1, 3)[:, None], z=True)
+    return _rows_z(ac, radial_profile(ac), np.asarray(lat.vectors[0], dtype=np.float64))
+
+
+def _rows_z(ac: np.ndarray, prof: np.ndarray, v: np.ndarray) -> float:
+    """The autocorrelation's height at row vector v and twice it, in ring standard deviations (a repeat of rows)."""
+    return _contrast(ac, prof, v[None] * np.arange(1, 3)[:, None], z=True)
 
 
 #: at most this many paths of at most this many pixels in ``mean_line_spacing`` (a few MB at any mask size)
