@@ -12,6 +12,9 @@ random cellular window (larp, smoothness, sector count) and threshold. Each is f
            (workers.lattice.compare_lattices); acceptance: period within 5 % and angle within 3 deg on >= 90 %
   tru      whether a fresh realisation of the true parameters passes that check itself (where it does not, the
            target has no lattice that survives a redraw and the check is a matter of chance for any fit)
+  lay      the same check on the parameters: the lattice the fit's layout puts its cells on against the truth's
+           (workers.lattice.compare_layouts: family lattices mapped by resolution, aspect and rotation; the rows
+           of the random-cut families), defined for every target
   family   the fit's tiling family is the truth's (or one of the same group: workers.lattice.TILING_GROUPS)
   ratio    VGG-19 Gram distance of 2 fresh realisations of the fit / that of 2 fresh realisations of the true
            parameters (the floor a perfect fit scores); acceptance: <= 1.5 on >= 80 %
@@ -115,7 +118,7 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
     fams = [int(f) for f in args.families.split(",")] if args.families else FAMILIES
     rows = []
     print(f"{'#':>3} {'tiling':>6} {'res':>4} {'asp':>5} {'rot':>5} | {'fit t':>5} {'res':>4} {'asp':>5} "
-          f"{'rot':>5} | {'per%':>5} {'ang':>5} {'tru':>3} {'fam':>3} | {'fit':>6} {'floor':>6} {'ratio':>5} {'r+lay':>5} | "
+          f"{'rot':>5} | {'per%':>5} {'ang':>5} {'tru':>3} {'lay':>3} {'fam':>3} | {'fit':>6} {'floor':>6} {'ratio':>5} {'r+lay':>5} | "
           f"{'s':>4} kind")
     for k in range(args.n):
         t = fams[k % len(fams)]
@@ -127,13 +130,15 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
         (d_fit, l_fit), (d_true, l_true) = scores(loss, fit.params, fit.complement), scores(loss, p, False)
         truth_ok = lattice_ok(*L.compare_lattices(lt, L.analyse_lattice(pp.render_mask(p, SIZE, SIZE,
                                                                                         shift=FRESH[0]))))
+        layout_ok = lattice_ok(*L.compare_layouts(p, fit.params))
         row = dict(k=k, tiling=t, res=int(p[3]), fit_tiling=int(fit.params[1]), period_err=per, angle_err=ang,
                    family=L.same_family(t, int(fit.params[1])), ratio=d_fit / d_true, ratio_loss=l_fit / l_true,
-                   seconds=secs, method=fit.meta.get("method", "query"), truth_lattice=truth_ok)
+                   seconds=secs, method=fit.meta.get("method", "query"), truth_lattice=truth_ok,
+                   layout_ok=layout_ok)
         rows.append(row)
         print(f"{k:>3} {t:>6} {int(p[3]):>4} {p[5]:>5.2f} {p[4]:>5.2f} | {int(fit.params[1]):>5} "
               f"{int(fit.params[3]):>4} {fit.params[5]:>5.2f} {fit.params[4]:>5.2f} | {100 * per:>5.1f} "
-              f"{ang:>5.1f} {'y' if truth_ok else 'n':>3} {'y' if row['family'] else 'n':>3} | {d_fit:>6.4f} {d_true:>6.4f} "
+              f"{ang:>5.1f} {'y' if truth_ok else 'n':>3} {'y' if layout_ok else 'n':>3} {'y' if row['family'] else 'n':>3} | {d_fit:>6.4f} {d_true:>6.4f} "
               f"{row['ratio']:>5.2f} {row['ratio_loss']:>5.2f} | {secs:>4.0f} {row['method']} ({lt.kind})", flush=True)
         if panels:
             _panel(panels / f"synthetic_{k:02d}_t{t}.png", [target, out])
@@ -142,6 +147,7 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
     defined = [r for r in rows if r["truth_lattice"]]
     ok_def = sum(lattice_ok(r["period_err"], r["angle_err"]) for r in defined)
     ok_fam = sum(r["family"] for r in rows)
+    ok_lay = sum(r["layout_ok"] for r in rows)
     ok_ratio = sum(r["ratio"] <= 1.5 for r in rows)
     ok_loss = sum(r["ratio_loss"] <= 1.5 for r in rows)
     secs = sorted(r["seconds"] for r in rows)
@@ -153,6 +159,8 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
     print(f"the truth's own fresh realisation keeps the target's lattice on {len(defined)}/{n} (the others have no "
           f"lattice that survives a redraw: rows of random heights, split herringbones); the fit on {ok_def}/"
           f"{len(defined)} of those")
+    print(f"the fit's layout lattice (parameters) within 5 % and 3 deg of the truth's: {ok_lay}/{n} "
+          f"({100 * ok_lay / n:.0f} %)")
     return rows
 
 

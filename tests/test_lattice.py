@@ -151,3 +151,34 @@ def test_rows_of_random_heights_have_their_mean_height():
     assert abs(lat.row_height - 35.25) <= 0.1 * 35.25, (lat.row_spacing, lat.row_height)
     first = L.match_tilings(lat)[0]
     assert first.tiling in (6, 7) and abs(first.resolution - lat.row_height) < 1e-9
+
+
+def _layout(tiling: int, res: float, aspect: float, rotation: float) -> np.ndarray:
+    return L.layout_params(L.LatticeMatch(tiling, res, aspect, rotation, 0.0), 0.7)
+
+
+@pytest.mark.parametrize("tiling,res,aspect,rotation", [(4, 22.0, 1.4, 0.15), (8, 18.0, 1.8, 0.3),
+                                                       (16, 22.0, 1.4, 0.15)])
+def test_layout_lattice_is_what_the_render_shows(tiling, res, aspect, rotation):
+    """The lattice read off the parameters is the one the analysis measures on the render (2-D families on their
+    lattice, fixed-height random bricks on their rows)."""
+    p = _layout(tiling, res, aspect, rotation)
+    lat = L.analyse_lattice(pp.render_mask(p, 256, 256, shift=(1.3, 2.1)))
+    per, ang = min(L.compare_lattices(e, lat) for e in L.layout_lattices(p))
+    assert per < 0.03 and ang < 2.0, (lat.kind, lat.vectors, L.layout_lattices(p))
+
+
+def test_compare_layouts_reads_lattices_not_families():
+    """Rows: the half turn is the same layout, a 10 % larger spacing or a quarter turn is not. 2-D: a square grid
+    put on a running bond's lattice by match_tilings has that lattice (another family, error ~0); the running
+    bond's own lattice at a 10 % larger resolution does not."""
+    rows = _layout(6, 30.0, 1.2, 0.3)
+    assert L.compare_layouts(rows, _layout(6, 30.0, 1.2, 1.3)) == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert L.compare_layouts(rows, _layout(7, 33.0, 1.2, 0.3))[0] == pytest.approx(0.1, abs=0.01)
+    assert L.compare_layouts(rows, _layout(6, 30.0, 1.2, 0.8))[1] == pytest.approx(90.0, abs=0.5)
+    assert L.compare_layouts(rows, _layout(4, 30.0, 1.2, 0.3)) == (math.inf, math.inf)
+    bond = _layout(4, 24.0, 2.0, 0.1)
+    other = next(m for m in L.match_tilings(L.layout_lattices(bond)[0]) if m.tiling == 0 and not m.supercell)
+    per, ang = L.compare_layouts(bond, L.layout_params(other, 0.7))
+    assert per < 0.02 and ang < 1.0
+    assert L.compare_layouts(bond, _layout(4, 26.4, 2.0, 0.1))[0] > 0.05

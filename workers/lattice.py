@@ -25,7 +25,8 @@ measured first and the search starts on it:
   with a crisp cellular window (the layout's cells, thresholded at the target's white fraction), ordered so
   that the first cover every kind of layout (square, half and third bonds, herringbone, pavement, Pythagorean,
   random-cut rows along the courses), bricks along the courses first.
-* ``compare_lattices``: period and angle errors of one lattice against another (the acceptance yardstick).
+* ``compare_lattices``: period and angle errors of one lattice against another (the acceptance yardstick);
+  ``compare_layouts`` the same for the lattices two parameter vectors' layouts put their cells on.
 """
 from __future__ import annotations
 
@@ -720,6 +721,46 @@ def _short_vectors(lat: Lattice) -> np.ndarray:
         v = _reduce(v)
         v = np.concatenate([v, [v[0] + v[1], v[0] - v[1]]])
     return np.concatenate([v, -v])
+
+
+def layout_map(params) -> np.ndarray:
+    """The 2x2 map M = r R(-alpha) diag(a, 1) of a parameter vector: domain units -> pixels (at the width the
+    vector refers to; jitter and turbulence move cells, not their lattice)."""
+    p = np.asarray(params, dtype=np.float64)
+    r = float(max(1, int(math.trunc(p[_I["resolution"]]))))
+    a = float(p[_I["aspect_ratio"]])
+    al = math.pi * float(p[_I["rotation"]])
+    ca, sa = math.cos(al), math.sin(al)
+    return np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
+
+
+def layout_lattices(params) -> list[Lattice]:
+    """The lattices the parameters' layout puts its cells on, in pixels: the family's own (near-)lattices of
+    DOMAIN_LATTICE mapped by ``layout_map`` ("2d"); for the random-cut row families the rows (one domain unit
+    apart along y, running along the domain x axis); [] for the relaxed families (no lattice). What a fit of
+    known parameters is compared on when a realisation's own lattice is a matter of chance (rows of random
+    heights, split herringbones: their fresh realisations often read as no lattice, the truth's too)."""
+    t = int(np.asarray(params)[_I["tiling"]])
+    M = layout_map(params)
+    if t in ROW_FAMILIES:
+        across, along = M @ np.array([0.0, 1.0]), M @ np.array([1.0, 0.0])
+        spacing = abs(float(np.linalg.det(M))) / float(np.linalg.norm(along))
+        return [Lattice(kind="rows", vectors=[(float(across[0]), float(across[1]))], regularity=1.0,
+                        row_vector=(float(along[0]), float(along[1])), row_spacing=spacing,
+                        orientation_deg=math.degrees(math.atan2(along[1], along[0])) % 180.0)]
+    out = []
+    for D in DOMAIN_LATTICE.get(t, ())[:max(1, NEAR_LATTICES.get(t, 1))]:
+        b = _reduce(np.stack([M @ np.array(D[0]), M @ np.array(D[1])]))
+        out.append(Lattice(kind="2d", vectors=[tuple(map(float, b[0])), tuple(map(float, b[1]))], regularity=1.0))
+    return out
+
+
+def compare_layouts(truth, fit) -> tuple[float, float]:
+    """(period error, angle error in degrees) of the lattice of parameter vector `fit`'s layout against
+    `truth`'s (``layout_lattices``; the best pair of their own lattices); inf when either has none or one is
+    rows and the other 2-D."""
+    pairs = [compare_lattices(a, b) for a in layout_lattices(truth) for b in layout_lattices(fit)]
+    return min(pairs, key=lambda e: (max(e[0] / 0.05, e[1] / 3.0), e), default=(math.inf, math.inf))
 
 
 def compare_lattices(target: Lattice, other: Lattice) -> tuple[float, float]:
