@@ -9,8 +9,11 @@ a head with no CPUs (it only hosts the driver, as in deploy/) and N worker nodes
 Every task and actor reserves the CPUs its threads use, so N one-CPU nodes are N cores' worth of work (on a
 machine with fewer cores than N x CPUs they share the cores, so read the 4-node row against ``nproc``).
 
-The table: wall seconds, materials/hour, speed-up over the first row, and per stage the share of its items'
-time spent waiting for a slot (``wait / (wait + run)`` from the job database: a task waiting for a CPU, a mask
+The table: wall seconds, materials/hour, speed-up over the first row, the machine's own ceiling for that many
+workers (``ceiling``: n copies of one single-threaded kernel of the pipeline's kind, torch convolutions and numpy
+FFTs, run at once without Ray, n x the time of one copy alone over the time of the n; a machine whose cores slow
+each other down cannot give any scheduler more), and per stage the share of its items' time spent waiting for a
+slot (``wait / (wait + run)`` from the job database: a task waiting for a CPU, a mask
 or recomposition call waiting in the driver's queue for an actor).
 
 ``--cuda`` runs the job once with ``recompose.device = "cpu"`` and once with ``"cuda"`` on a local Ray that
@@ -119,6 +122,36 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
             "run": run, "wait": wait, "errors": report.errors, "devices": devices}
 
 
+def _kernel(_: int = 0) -> float:
+    """Seconds of a fixed single-threaded workload like the pipeline's (torch convolutions, numpy FFTs)."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(1)
+    x, w = torch.rand(1, 64, 128, 128), torch.rand(64, 64, 3, 3)
+    a = np.random.default_rng(0).random((512, 512))
+    t0 = time.perf_counter()
+    for _ in range(300):
+        torch.nn.functional.conv2d(x, w, padding=1)
+    for _ in range(100):
+        np.fft.fft2(a)
+    return time.perf_counter() - t0
+
+
+def machine_ceiling(n: int) -> float:
+    """Speed-up of n concurrent copies of ``_kernel`` over one (n x t1 / t_n), in separate processes."""
+    import multiprocessing as mp
+
+    if n <= 1:
+        return 1.0
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(1) as pool:
+        one = pool.apply(_kernel)
+    with ctx.Pool(n) as pool:
+        many = pool.map(_kernel, range(n))
+    return n * one / max(many)
+
+
 def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
@@ -129,7 +162,7 @@ def throughput(args: argparse.Namespace, dec: str) -> int:
     print(f"{args.materials} materials, working size {args.working_size}, decompose {dec}, recompose "
           f"{args.iterations} iterations on CPU, {args.cpus_per_node} CPU per node, head 0 CPU; "
           f"machine: {os.cpu_count()} cores")
-    head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "items"] + \
+    head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "ceiling", "items"] + \
            [f"{s} run s / wait %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
     print(" | ".join(head))
     print(" | ".join("---" for _ in head), flush=True)
@@ -137,13 +170,14 @@ def throughput(args: argparse.Namespace, dec: str) -> int:
     base = None
     with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
         for n in args.nodes:   # each row printed as soon as it is measured
+            ceiling = machine_ceiling(n * args.cpus_per_node)
             before = _load()
             r = run_on_nodes(n, args.cpus_per_node, doc, Path(tmp) / f"nodes{n}")
             base = base or r["seconds"]
             for name, err in r["errors"].items():
                 print(f"  [{n} nodes] {name} failed: {err}", file=sys.stderr)
             cells = [r["nodes"], r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
-                     f"{base / r['seconds']:.2f}x", r["items"]]
+                     f"{base / r['seconds']:.2f}x", f"{ceiling:.2f}x", r["items"]]
             for s in stages:
                 run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
                 cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}%")
