@@ -152,13 +152,11 @@ class GramMaskLoss(MaskLoss):
 #: smoothness: polygon to curved cells; arity: 2^arity sectors of the cell border, a rounded step a local search
 #: cannot move; jitter: irregular cells; norm: the Minkowski norm of the cell distance). The loss is sharp in
 #: larp: a pavement whose true larp is 0.125 scores 0.014 there and 0.10-0.17 at 0 and 0.25, so each line is
-#: refined around its best value. Arity first, in this order: larp and smoothness first make up for a wrong
-#: arity and then hold it (a 3:1 herringbone of 8 sectors: the template scores 0.16 at arity 3 and 0.48 at 4;
-#: larp then smoothness at arity 4 reached 0.25, where arity 3 scores 0.41)
+#: refined around its best value
 WINDOW_LINES: dict[str, tuple[float, ...]] = {
-    "window_arity": (3.0, 4.0, 5.0, 6.0),
     "window_larp": tuple(np.linspace(0.0, 1.0, 9)),
     "window_smoothness": (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0),
+    "window_arity": (3.0, 4.0, 5.0, 6.0),
     "jitter": (0.0, 0.05, 0.1, 0.15, 0.2),
     "window_norm": (1.0, 1.5, 2.0, 2.5, 3.0),
 }
@@ -191,13 +189,12 @@ def _same_lattice(x: np.ndarray) -> list[np.ndarray]:
 SCAN_LINES = ("window_arity", "window_larp", "window_smoothness")
 
 
-def _scan_layouts(budget: Budget, x: np.ndarray, with_x: bool = True) -> np.ndarray:
+def _scan_layouts(budget: Budget, x: np.ndarray) -> np.ndarray:
     """The best of x and the other layouts on its lattice (``_same_lattice``), each after one line over each of
-    SCAN_LINES (x itself too unless `with_x` is False: its lines were just searched): a split pavement loses to
-    its unsplit sibling at the crisp template and at the sibling's fitted cell shape (bench target 14: 0.32-0.40
-    against 0.28) and wins at its own (0.07)."""
+    SCAN_LINES: a split pavement loses to its unsplit sibling at the crisp template and at the sibling's fitted
+    cell shape (bench target 14: 0.32-0.40 against 0.28) and wins at its own (0.07)."""
     best, best_loss = x, budget(x)
-    for q in ([x] if with_x else []) + _same_lattice(x):
+    for q in [x] + _same_lattice(x):
         for name in SCAN_LINES:
             q = _line(budget, q, name, WINDOW_LINES[name])
         if budget(q) < best_loss:
@@ -205,20 +202,18 @@ def _scan_layouts(budget: Budget, x: np.ndarray, with_x: bool = True) -> np.ndar
     return best
 
 
-def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = True,
-                 scan_x: bool = True) -> np.ndarray:
+def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = True) -> np.ndarray:
     """Coordinate line search over the cell shape (WINDOW_LINES), layout untouched: each entry over its values,
     then halving steps around the best (two per entry), cycle after cycle until one improves nothing; returns
     the best vector (also the budget's). A coarse grid over larp x smoothness x arity misses the narrow valleys
     of the loss, a local search from the crisp template does not cross the arity steps; lines do both for a
     few dozen evaluations a cycle. A chiral family's half turn (``lattice.half_turn``) and the family's split or
     unsplit sibling (``lattice.split_sibling``) each get a short line search first (`scan`,
-    ``_scan_layouts``; x0 itself too unless `scan_x` is False, when its lines were just searched) and are tried
-    again at each cycle. Stops quietly when the budget is spent."""
+    ``_scan_layouts``) and are tried again at each cycle. Stops quietly when the budget is spent."""
     x = pp.clip_params(np.asarray(x0, np.float64))
     try:
         if scan:
-            x = _scan_layouts(budget, x, with_x=scan_x)
+            x = _scan_layouts(budget, x)
         for _ in range(max(1, cycles)):
             before = budget(x)
             for q in _same_lattice(x):
@@ -528,9 +523,7 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     c = min(searches, key=lambda k: searches[k].best_loss)
     s = searches[c]
     s.max_evals = max(s.evaluations, cap - sum(x.evaluations for k, x in searches.items() if k != c))
-    # the first cycle searched every line of its best vector: the scan gives the other layouts theirs (on a 51 px
-    # herringbone, 0.2 s a crop evaluation, re-scanning it took the time its second cycle needed)
-    window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3, scan_x=s.best_params is None)
+    window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3)
     search_evals = sum(x.evaluations for x in searches.values())
     counted = 0 if crop is not None else search_evals
     history = [] if crop is not None else [v for k in pols for v in searches[k].history]
