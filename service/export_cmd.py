@@ -182,10 +182,14 @@ def _fmt(v: Any) -> str:
     return json.dumps(v) if not isinstance(v, str) else v
 
 
+#: the edited material is evaluated at this size before it is written
+EDIT_CHECK_SIZE = 8
+
+
 def _cmd_edit(args) -> int:
     from service.cli import _print_table
     from workers import graph
-    from workers.errors import InputError
+    from workers.errors import GraphError, InputError
 
     mat = graph.load(args.material)
     if args.list:
@@ -196,6 +200,10 @@ def _cmd_edit(args) -> int:
     if not args.sets:
         raise InputError("edit: nothing to do (give --set PATH=VALUE or --list)")
     edits = apply_edits(mat, [parse_assignment(s) for s in args.sets], str(args.material))
+    try:    # an edit that breaks evaluation (a map with the wrong channel count) is refused before writing
+        graph.evaluate(mat, EDIT_CHECK_SIZE, EDIT_CHECK_SIZE)
+    except GraphError as exc:
+        raise InputError(f"the edit does not evaluate: {exc}") from None
     out = graph.save(mat, args.out or args.material)
     for e in edits:
         print(f"{e.path}: {_fmt(e.before)} -> {_fmt(e.after)}")

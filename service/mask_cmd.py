@@ -18,6 +18,8 @@ import numpy as np
 logger = logging.getLogger(__name__)
 
 FORMAT = "proceduralize-mask/1"
+#: the smallest side of a mask the fit reads (its lattice analysis needs 16 px)
+MIN_MASK_SIDE = 16
 
 
 def _read_mask(path: Path, field: str) -> np.ndarray:
@@ -28,6 +30,9 @@ def _read_mask(path: Path, field: str) -> np.ndarray:
     img = read_image(path)
     if img.ndim == 3:
         img = img[..., 0]
+    if min(img.shape) < MIN_MASK_SIDE:
+        raise InputError(f"{path}: {field} is {img.shape[1]}x{img.shape[0]} pixels; a mask needs at least "
+                         f"{MIN_MASK_SIDE}x{MIN_MASK_SIDE}")
     m = img > 0.5
     if m.all() or not m.any():
         raise InputError(f"{path}: {field} is uniform ({'all' if m.all() else 'no'} pixels above 0.5): nothing to fit")
@@ -42,6 +47,7 @@ def fit_document(fit, source: Path, size: tuple[int, int]) -> dict:
 
 def load_fit(path: Path):
     """(MaskFit, source width) from a FIT.json; InputError naming the file and the field otherwise."""
+    from pptbf_db import pptbf as pp
     from workers.errors import InputError
     from workers.masks import MaskFit
 
@@ -58,6 +64,10 @@ def load_fit(path: Path):
         raise InputError(f"{path}: field 'fit' or 'source_size' is malformed ({exc})") from None
     if fit.params.size != 29 or width < 1:
         raise InputError(f"{path}: field 'fit.params' must hold 29 numbers and 'source_size' a positive width")
+    try:
+        pp.decode(fit.params)
+    except ValueError as exc:
+        raise InputError(f"{path}: field 'fit.params': {exc}") from None
     return fit, width
 
 

@@ -50,6 +50,9 @@ MIN_SCALE, MAX_SCALE = 1.0 / 64.0, 64.0
 MAX_SIGMA = 1e4
 #: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
 MAP_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
+#: channel counts the known maps may have (renderers, exporters and PNG writers rely on them); other names any
+MAP_CHANNELS: dict[str, tuple[int, ...]] = {"albedo": (1, 3), "normal": (3,), "roughness": (1,), "height": (1,),
+                                            "metallic": (1,)}
 
 
 # ----------------------------------------------------------------------------- arrays
@@ -154,6 +157,14 @@ def _ensure_builtin_types_loaded() -> None:
                 raise
 
 
+def _numbers(value: Any, field: str) -> np.ndarray:
+    """A parameter as a 1-D float array; GraphError naming `field` when it is not numbers (a string, a dict)."""
+    try:
+        return np.atleast_1d(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError, OverflowError):
+        raise GraphError(f"{field} must be a number or a list of numbers, got {value!r}") from None
+
+
 def _as3(a: np.ndarray) -> np.ndarray:
     """View a 2-D array as HxWx1."""
     return a[..., None] if a.ndim == 2 else a
@@ -170,7 +181,7 @@ class ConstantNode:
     inputs: tuple[str, ...] = ()
 
     def validate(self, params: dict) -> None:
-        v = np.atleast_1d(np.asarray(params.get("value"), dtype=np.float64))
+        v = _numbers(params.get("value"), "constant.value")
         if v.ndim != 1 or v.size == 0 or not np.all(np.isfinite(v)):
             raise GraphError("constant.value must be a finite number or list of numbers")
 
@@ -188,7 +199,7 @@ class LevelNode:
 
     def validate(self, params: dict) -> None:
         for k in ("a", "d"):
-            v = np.atleast_1d(np.asarray(params.get(k, 1.0 if k == "a" else 0.0), dtype=np.float64))
+            v = _numbers(params.get(k, 1.0 if k == "a" else 0.0), f"level.{k}")
             if not np.all(np.isfinite(v)):
                 raise GraphError(f"level.{k} must be finite")
 
@@ -332,6 +343,7 @@ class ProceduralMaterial:
     working_size: tuple[int, int] = (512, 512)
     meta: dict = field(default_factory=dict)
     input_size: tuple[int, int] | None = None
+    source: str = field(default="<material>", compare=False)    # where it was read from (for messages)
 
     @property
     def pattern_unit(self) -> float:
@@ -448,7 +460,7 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     if not isinstance(meta, dict):
         raise GraphError(f"{source}: meta must be an object")
     mat = ProceduralMaterial(nodes=nodes, maps=maps, seed=seed, working_size=(ws[0], ws[1]), meta=meta,
-                             input_size=_size_field(doc, "input_size", source))
+                             input_size=_size_field(doc, "input_size", source), source=source)
     names = set()
     for i, m in enumerate(maps):
         if not isinstance(m, dict) or not isinstance(m.get("name"), str):
@@ -594,6 +606,12 @@ def evaluate(
             out[m["name"]] = height_to_normal(h, strength=float(m.get("strength", 1.0)) * ctx.px_scale,
                                               convention=m.get("convention", "opengl"),
                                               tilt=tuple(m.get("tilt", (0.0, 0.0))))
+    for name, v in out.items():
+        allowed = MAP_CHANNELS.get(name)
+        if allowed is not None and v.shape[-1] not in allowed:
+            node = next((m.get("node") for m in mat.maps if m["name"] == name), None)
+            raise GraphError(f"{mat.source}: map {name!r} (node {node!r}) has {v.shape[-1]} channels; a {name} "
+                             f"map has {' or '.join(map(str, allowed))}")
     if wanted is not None:
         out = {k: v for k, v in out.items() if k in wanted}
     return out
