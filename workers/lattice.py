@@ -529,6 +529,13 @@ def _unimodular(k: int = 2) -> list[np.ndarray]:
 _UNIMODULAR = _unimodular(2)
 
 
+def _layout_matrix(r: float, a: float, alpha: float) -> np.ndarray:
+    """M = r R(-alpha) diag(a, 1): the layout (resolution r, aspect a, rotation alpha in radians) as the map from
+    domain units to pixels (columns: the images of the domain axes)."""
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    return np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
+
+
 def _as_layout(M: np.ndarray) -> tuple[float, float, float]:
     """Closest (resolution, aspect, alpha) to a 2x2 map M (columns: images of the domain axes) of the form
     r R(-alpha) diag(a, 1): alpha from the best rotation fit, then the column lengths along it."""
@@ -578,8 +585,7 @@ def _layouts_for(T: np.ndarray, Dm: np.ndarray, tiling: int, max_error: float, w
         r, a, alpha = _as_layout(M)
         if r <= 1.0 or a <= 0.05 or a > 10.0 or r * max(a, 1.0) > 4 * width:
             continue
-        ca, sa = math.cos(alpha), math.sin(alpha)
-        Mf = np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
+        Mf = _layout_matrix(r, a, alpha)
         err = float(np.linalg.norm(Mf @ Dm @ np.linalg.inv(U) - T)) / tn
         if err <= max_error:
             out.append(LatticeMatch(tiling, r, a, (alpha / math.pi) % 2.0, err, supercell))
@@ -745,11 +751,8 @@ def layout_map(params) -> np.ndarray:
     """The 2x2 map M = r R(-alpha) diag(a, 1) of a parameter vector: domain units -> pixels (at the width the
     vector refers to; jitter and turbulence move cells, not their lattice)."""
     p = np.asarray(params, dtype=np.float64)
-    r = float(max(1, int(math.trunc(p[_I["resolution"]]))))
-    a = float(p[_I["aspect_ratio"]])
-    al = math.pi * float(p[_I["rotation"]])
-    ca, sa = math.cos(al), math.sin(al)
-    return np.array([[a * r * ca, r * sa], [-a * r * sa, r * ca]])
+    return _layout_matrix(float(max(1, int(math.trunc(p[_I["resolution"]])))), float(p[_I["aspect_ratio"]]),
+                          math.pi * float(p[_I["rotation"]]))
 
 
 def layout_lattices(params) -> list[Lattice]:
@@ -775,8 +778,8 @@ def layout_lattices(params) -> list[Lattice]:
 
 def compare_layouts(truth, fit) -> tuple[float, float]:
     """(period error, angle error in degrees) of the lattice of parameter vector `fit`'s layout against
-    `truth`'s (``layout_lattices``; the best pair of their own lattices); inf when either has none or one is
-    rows and the other 2-D."""
+    `truth`'s (``layout_lattices``; the pair of their own lattices closest in units of the acceptance's 5 % and
+    3 degrees); inf when either has none or one is rows and the other 2-D."""
     pairs = [compare_lattices(a, b) for a in layout_lattices(truth) for b in layout_lattices(fit)]
     return min(pairs, key=lambda e: (max(e[0] / 0.05, e[1] / 3.0), e), default=(math.inf, math.inf))
 
