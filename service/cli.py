@@ -220,8 +220,8 @@ def _cmd_render(args) -> int:
 
     mat = graph.load(args.material)
     w, h = args.size
+    check_render_memory(mat, w, h, args.memory_budget)     # a refused render leaves no folder behind
     output_folder(args.out)
-    check_render_memory(mat, w, h, args.memory_budget)
     t0 = time.perf_counter()
     maps = graph.evaluate(mat, w, h, scale=args.scale, seed=args.seed)
     seconds = time.perf_counter() - t0

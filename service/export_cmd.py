@@ -255,8 +255,8 @@ def _cmd_export(args) -> int:
     w, h = args.size
     name = args.name or export_name(args.material)
     output_file(args.out, name, "")  # a bad --name is refused before anything is computed or created
+    check_render_memory(mat, w, h, args.memory_budget)     # a refused export leaves no folder behind
     output_folder(args.out)
-    check_render_memory(mat, w, h, args.memory_budget)
     t0 = time.perf_counter()
     maps = graph.evaluate(mat, w, h, scale=args.scale, seed=args.seed)
     t_eval = time.perf_counter() - t0

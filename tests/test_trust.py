@@ -268,6 +268,7 @@ def test_render_over_the_memory_budget_is_refused_before_allocating(tmp_path):
     rc, _, err = _peak_rss_mb("export", str(mat), "--size", "8192x8192", "--out", str(tmp_path / "x"),
                               "--memory-budget", "256M")
     assert rc == 2 and "memory budget" in err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "x").exists()      # a refusal writes nothing
     assert main(["render", str(mat), "--size", "64", "--out", str(tmp_path / "ok"), "--memory-budget", "1G"]) == 0
 
 
