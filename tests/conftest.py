@@ -1,6 +1,7 @@
 """Shared fixtures: real materials from ../shared/materials, an artefact folder, one Ray per session."""
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -65,3 +66,20 @@ def start_local_ray() -> None:
         ray.init(address="local", _node_ip_address="127.0.0.1", num_cpus=2, include_dashboard=False,
                  logging_level="WARNING",
                  runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+
+
+def small_material(path: Path, **edit) -> Path:
+    """A tiny valid material.json: constant albedo/roughness, a blurred height, normals from the height."""
+    from workers import graph
+
+    m = graph.new_material(seed=3, working_size=(32, 32))
+    m.add("alb", "constant", {"value": [0.5, 0.3, 0.2]})
+    m.add("rough", "constant", {"value": 0.6})
+    m.add("h0", "constant", {"value": 0.5})
+    m.add("height", "blur", {"sigma": 1.0}, input="h0")
+    m.maps = [{"name": "albedo", "node": "alb"}, {"name": "roughness", "node": "rough"},
+              {"name": "height", "node": "height"}, {"name": "normal", "from_height": "height", "strength": 2.0}]
+    doc = m.to_json()
+    doc.update(edit)
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    return path

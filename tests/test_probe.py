@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from service.cli import main
-from tests.test_trust import small_material
+from tests.conftest import small_material
 from workers.maps import write_image
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from service.cli import main
+from tests.conftest import small_material
 from workers.maps import write_image
 
 REPO = Path(__file__).resolve().parents[1]
@@ -108,23 +109,6 @@ def test_results_rechecks_checksums(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- 2. writes stay inside --out
-
-
-def small_material(path: Path, **edit) -> Path:
-    """A tiny valid material.json: constant albedo/roughness, a blurred height, normals from the height."""
-    from workers import graph
-
-    m = graph.new_material(seed=3, working_size=(32, 32))
-    m.add("alb", "constant", {"value": [0.5, 0.3, 0.2]})
-    m.add("rough", "constant", {"value": 0.6})
-    m.add("h0", "constant", {"value": 0.5})
-    m.add("height", "blur", {"sigma": 1.0}, input="h0")
-    m.maps = [{"name": "albedo", "node": "alb"}, {"name": "roughness", "node": "rough"},
-              {"name": "height", "node": "height"}, {"name": "normal", "from_height": "height", "strength": 2.0}]
-    doc = m.to_json()
-    doc.update(edit)
-    path.write_text(json.dumps(doc), encoding="utf-8")
-    return path
 
 
 @pytest.mark.parametrize("bad", ["../../escaped", "/tmp/proceduralize_abs_escape", "sub/dir", "..", "a b"])

@@ -39,7 +39,8 @@ from pptbf_db import pptbf as pp
 from .features import GramExtractor, gram_distance
 from .errors import InputError
 from .inpaint import masked_autocorrelation
-from .lattice import ROW_FAMILIES, Lattice, half_turn, pptbf_starts, radial_profile, split_sibling
+from .lattice import (ROW_FAMILIES, Lattice, analyse_lattice, compare_lattices, half_turn, pptbf_starts,
+                      radial_profile, row_repeat, split_sibling)
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
 from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
 
@@ -254,8 +255,6 @@ def _keeps_lattice(loss: GramMaskLoss, lat: Lattice, cand: tuple) -> bool:
     lattice must repeat at the target's rows (``lattice.row_repeat`` >= ROW_REPEAT_Z): rows with random cuts
     often read so (the true parameters' own realisations of bench target 20 did, and the gate turned away the
     true layout)."""
-    from .lattice import analyse_lattice, compare_lattices, row_repeat
-
     for dx, dy in GATE_SHIFTS:
         m = loss.render(cand[2], cand[1], True, shift=(loss.shift[0] + dx, loss.shift[1] + dy))
         try:
