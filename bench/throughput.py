@@ -14,7 +14,9 @@ workers (``ceiling``: n copies of one single-threaded kernel of the pipeline's k
 FFTs, run at once without Ray, n x the time of one copy alone over the time of the n; a machine whose cores slow
 each other down cannot give any scheduler more), and per stage the share of its items' time spent waiting for a
 slot (``wait / (wait + run)`` from the job database: a task waiting for a CPU, a mask
-or recomposition call waiting in the driver's queue for an actor).
+or recomposition call waiting in the driver's queue for an actor) and the CPU seconds the worker process spent
+over the items' run seconds (``cpu %``: above 100 a stage runs more threads than it reserved, well under 100 it
+waits for cores its neighbours hold).
 
 ``--cuda`` runs the job once with ``recompose.device = "cpu"`` and once with ``"cuda"`` on a local Ray that
 sees the machine's GPU, and prints per material the recomposition seconds, device and final loss of both.
@@ -76,16 +78,19 @@ def _warm(nodes: list) -> None:
              for n in nodes])
 
 
-def _summarise(store, job: str) -> tuple[dict, dict]:
-    """Per stage: summed run seconds and summed wait seconds."""
+def _summarise(store, job: str) -> tuple[dict, dict, dict]:
+    """Per stage: summed run seconds, summed wait seconds and summed CPU seconds of the worker process."""
     run: dict[str, float] = {}
     wait: dict[str, float] = {}
+    cpu: dict[str, float] = {}
     for r in store.items(job):
         if r["status"] != "done":
             continue
         run[r["stage"]] = run.get(r["stage"], 0.0) + (r["duration"] or 0.0)
         wait[r["stage"]] = wait.get(r["stage"], 0.0) + (r["wait"] or 0.0)
-    return run, wait
+        info = json.loads(r["info"]) if r.get("info") else {}
+        cpu[r["stage"]] = cpu.get(r["stage"], 0.0) + float(info.get("cpu_s") or 0.0)
+    return run, wait, cpu
 
 
 def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> dict:
@@ -111,7 +116,7 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
         with Store(man.database) as store:
             report = Scheduler(man, store=store, progress=False).run()
             seconds = time.perf_counter() - t0
-            run, wait = _summarise(store, man.name)
+            run, wait, cpu = _summarise(store, man.name)
             devices = {m["name"]: m["device"] for m in store.materials(man.name)}
     finally:
         ray.shutdown()
@@ -119,7 +124,7 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
     done = sum(s == "done" for s in report.materials.values())
     return {"nodes": n_nodes, "cpus": n_nodes * cpus_per_node, "seconds": seconds, "done": done,
             "failed": len(report.materials) - done, "per_hour": done / seconds * 3600.0, "items": report.executed,
-            "run": run, "wait": wait, "errors": report.errors, "devices": devices}
+            "run": run, "wait": wait, "cpu": cpu, "errors": report.errors, "devices": devices}
 
 
 def _kernel(_: int = 0) -> float:
@@ -163,7 +168,7 @@ def throughput(args: argparse.Namespace, dec: str) -> int:
           f"{args.iterations} iterations on CPU, {args.cpus_per_node} CPU per node, head 0 CPU; "
           f"machine: {os.cpu_count()} cores")
     head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "ceiling", "items"] + \
-           [f"{s} run s / wait %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
+           [f"{s} run s / wait % / cpu %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
     print(" | ".join(head))
     print(" | ".join("---" for _ in head), flush=True)
     failed = 0
@@ -180,7 +185,9 @@ def throughput(args: argparse.Namespace, dec: str) -> int:
                      f"{base / r['seconds']:.2f}x", f"{ceiling:.2f}x", r["items"]]
             for s in stages:
                 run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
-                cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}%")
+                cpu = r["cpu"].get(s, 0.0)
+                cells.append(f"{run:.1f} / {100 * wait / (run + wait) if run + wait else 0:.0f}% / "
+                             f"{100 * cpu / run if run else 0:.0f}%")
             cells.append(f"{before} -> {_load()}")
             print(" | ".join(str(c) for c in cells), flush=True)
             failed += r["failed"]

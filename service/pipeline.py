@@ -554,12 +554,24 @@ def run_stage(call: dict, resources: Any = None) -> dict:
     if missing:
         raise StageUnavailable(f"stage {stage!r} needs module(s) {', '.join(missing)}, which are not installed")
     started = time.time()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     what = f"stage {stage}" + (f"[{call['item']}]" if call.get("item") else "")
     with time_limit(call.get("timeout"), what):
         _debug_hooks(call)
         res = STAGE_FUNCS[stage](call, resources)
     root = call["root"]
     arts = [artefact(root, Path(p), kind=f"{stage}:{Path(p).suffix.lstrip('.')}") for p in res["files"]]
-    return {"artefacts": arts, "info": res.get("info", {}), "worker": f"{socket.gethostname()}:{os.getpid()}",
+    info = dict(res.get("info", {}))
+    # CPU seconds of this process (all its threads) and its thread count: a stage busier than its reservation
+    # (cpu_s > duration) or starved by its neighbours (cpu_s well under duration) shows here
+    info.update(cpu_s=round(time.process_time() - c0, 3), threads=_thread_count())
+    return {"artefacts": arts, "info": info, "worker": f"{socket.gethostname()}:{os.getpid()}",
             "started": started, "finished": time.time(), "duration": time.perf_counter() - t0}
+
+
+def _thread_count() -> int | None:
+    """OS threads of this process (Linux /proc), None where that is not readable."""
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:
+        return None

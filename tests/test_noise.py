@@ -5,13 +5,14 @@ import json
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from tests.conftest import real_material_files
 from workers import graph
 from workers.errors import GraphError, InputError
 from workers.maps import read_image, resize_image, srgb_to_linear
-from workers.noise import (NoiseConfig, NoiseModel, expected_psd, fit_noise, noise_params, synthesize,
-                           synthesize_layers)
+from workers.noise import (NoiseConfig, NoiseModel, erode_mask, expected_psd, fit_noise, noise_params,
+                           synthesize, synthesize_layers)
 
 BIN = 1.0 / 128  # radial bin width in cycles per pixel
 
@@ -197,6 +198,40 @@ def test_mask_values_outside_are_ignored(synthetic):
     b = fit_noise(np.where(m[..., None], img, 5.0), m)
     np.testing.assert_allclose(a.base, b.base, atol=1e-5)
     np.testing.assert_allclose(a.layers[0].spectrum, b.layers[0].spectrum, rtol=1e-3, atol=1e-7)
+
+
+def _mortar_grid(n: int = 256, period: int = 32, width: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """A mortar network (lines ``width`` px wide every ``period`` px) and its distance to the bricks."""
+    d1 = np.minimum(np.arange(n) % period, (-np.arange(n)) % period)  # 0 on the line's axis
+    inside = d1 <= width // 2
+    mask = inside[:, None] | inside[None, :]
+    return mask, ndimage.distance_transform_edt(np.pad(mask, 4, mode="wrap"))[4:-4, 4:-4]
+
+
+def test_erosion_follows_the_mask_thickness():
+    """A thin network keeps its core (the full radius would erase it); a wide region is eroded by the full
+    radius."""
+    mask, _ = _mortar_grid()
+    em = erode_mask(mask, 0.02)          # 5 px at 256: more than the 5 px lines' half-width
+    kept = em.sum() / mask.sum()
+    print(f"mortar pixels kept {kept:.2f}")
+    assert 0.5 <= kept < 1.0 and not em[~mask].any()
+    wide = np.zeros((256, 256), bool)
+    wide[:, 40:200] = True
+    ew = erode_mask(wide, 0.02)
+    assert ew[:, 46:194].all() and not ew[:, :45].any() and not ew[:, 195:].any()
+
+
+def test_thin_mask_histogram_ignores_its_mixed_edge():
+    """Mortar lines whose one-pixel edge holds the bricks' colour (as a soft matte's threshold leaves it): the
+    fitted histogram is the mortar's, not the mortar's mixed with the bricks'."""
+    mask, dist = _mortar_grid()
+    rng = np.random.default_rng(0)
+    img = np.where(mask, 0.55, 0.85) + 0.01 * rng.standard_normal(mask.shape)
+    img = np.where(mask & (dist <= 1), 0.85, img).astype(np.float32)   # the edge: brick-coloured
+    out = synthesize(fit_noise(img, mask), 256, 256, seed=1)
+    print(f"synthesised mortar mean {out.mean():.3f} (mortar 0.55, edge 0.85)")
+    assert abs(float(np.median(out)) - 0.55) < 0.03 and abs(float(out.mean()) - 0.55) < 0.04
 
 
 # ----------------------------------------------------------------------------- histogram

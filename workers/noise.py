@@ -214,13 +214,20 @@ def masked_blur(x: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(den > 1e-4, num / np.maximum(den, 1e-4), 0.0).astype(np.float32)
 
 
-def erode_mask(mask: np.ndarray, fraction: float) -> np.ndarray:
-    """Erode by ``fraction`` of min(H, W) (at least 1 px); the image border counts as inside (maps tile)."""
+def erode_mask(mask: np.ndarray, fraction: float, keep: float = 0.5) -> np.ndarray:
+    """Erode by up to ``fraction`` of min(H, W) px, drop the mixed-colour pixels along a region's edge.
+
+    The radius shrinks to the mask's own thickness: the largest one that keeps at least ``keep`` of the mask's
+    pixels, so a thin network (mortar lines a few px wide) keeps its core instead of only its widest blobs
+    (stains), and a wide region is eroded by the full radius. The image border counts as inside (maps tile)."""
     r = int(round(fraction * min(mask.shape)))
-    if r < 1:
+    if r < 1 or mask.all():
         return mask.copy()
     dist = ndimage.distance_transform_edt(np.pad(mask, r + 1, mode="wrap"))[r + 1:-r - 1, r + 1:-r - 1]
-    return dist > r
+    inside = dist[mask]
+    while r >= 1 and np.mean(inside > r) < keep:
+        r -= 1
+    return dist > r if r >= 1 else mask.copy()
 
 
 def _window_grid(mask: np.ndarray, t: int, step: int, inside: float) -> tuple[np.ndarray, np.ndarray]:
@@ -356,7 +363,8 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
     if em.sum() < max(64, 0.1 * mask.sum()):
         em = mask
     qprobs = np.linspace(0.0, 1.0, cfg.n_quantiles)
-    quantiles = np.quantile(img[mask], qprobs, axis=0).astype(np.float32)
+    # the value histogram from the same pixels as the spectra: the eroded edge holds the neighbour's colours
+    quantiles = np.quantile(img[em], qprobs, axis=0).astype(np.float32)
 
     mean, basis, var = _pca(img[em].astype(np.float64))
     y = ((img - mean.astype(np.float32)) @ basis.astype(np.float32)).astype(np.float32)
