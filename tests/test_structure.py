@@ -59,6 +59,44 @@ def test_first_split_is_the_mortar_not_the_stains():
     assert best >= 0.7, best
 
 
+def _shaded_wall(seed: int = 0, dark_share: float = 0.3) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The running bond of ``_wall`` without stains, each brick red or (``dark_share`` of them) dark brown:
+    (maps, true mortar, true dark bricks)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[:N, :N]
+    row = y // 24
+    xs = (x + (row % 2) * 24) % 48
+    mortar = (y % 24 < 4) | (xs < 4)
+    brick_id = row * 8 + ((x + (row % 2) * 24) % N) // 48
+    dark = (rng.random(brick_id.max() + 1) < dark_share)[brick_id] & ~mortar
+    height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
+    height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
+    albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.50, 0.16, 0.08]))
+    albedo = np.where(dark[..., None], np.float32([0.16, 0.10, 0.07]), albedo)
+    albedo = albedo + 0.015 * rng.standard_normal(albedo.shape)
+    maps = {"albedo": np.clip(albedo, 0, 1).astype(np.float32), "height": height,
+            "normal": height_to_normal(height, strength=4.0)}
+    return maps, mortar, dark
+
+
+def test_cells_of_two_shades_become_instance_kinds():
+    """Bricks of two shades: the cells split into two instance kinds, one per shade (IoU >= 0.8 with each shade's
+    bricks); bricks of one shade stay one leaf; ``children.1 = leaf`` keeps them one leaf."""
+    maps, mortar, dark = _shaded_wall()
+    root = decompose(maps, {"layers": 2})
+    cells = root.children[1]
+    assert cells.method == "instances" and len(cells.children) == 2, (cells.method, len(cells.children))
+    red = cells.mask & ~dark
+    ious = sorted(max(_iou(c.mask, t) for c in cells.children) for t in (red, dark & cells.mask))
+    print(f"kind IoU with the shades: {ious}, shares {cells.shares}")
+    assert ious[0] >= 0.8
+    assert cells.meta["auto"] and abs(min(cells.shares) - dark[~mortar].mean()) < 0.1
+    same, _, _ = _shaded_wall(dark_share=0.0)
+    assert decompose(same, {"layers": 2}).children[1].children == []
+    kept = decompose(maps, {"layers": 2, "children": {"1": {"method": "leaf"}}})
+    assert kept.children[1].children == [] and kept.children[1].method != "instances"
+
+
 def test_scribbles_override_and_noise_keeps_colour_matting():
     maps, mortar, _ = _wall()
     scrib = np.zeros((N, N, 3), np.uint8)

@@ -20,8 +20,11 @@ the layout about as strongly as the colour split's layers or more (workers.struc
 lattice, then regularity; at a small working size a 1-2 px mortar cut turns to speckle while the colours still
 show the bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges),
 "root.1" = the cells; with more than 2 layers (or "auto"), the cells are split again by colour matting
-(layers - 1, or "auto") as "root.1.*", so stains and colour variation become nested splits (with 2 layers they
-stay in the cells' noise). Children specs apply to root.0 / root.1 as usual. Scribbles override it;
+(layers - 1, or "auto") as "root.1.*", so stains and colour variation become nested splits. With 2 layers,
+cells that are separate pieces (at least ``AUTO_INSTANCE_MIN``) and fall into two or more kinds by appearance
+become an instance split "root.1.*" (each brick one kind's colour, as in the input); otherwise the cells stay
+one leaf and their variation stays in its noise. Children specs apply to root.0 / root.1 as usual
+(``children = {"1" = {method = "leaf"}}`` keeps the cells one leaf). Scribbles override it;
 ``structure = false`` turns it off.
 
 Node ids: "root", "root.0", "root.1", "root.0.1", ... (layer / kind index). A split solves only over its parent's
@@ -213,10 +216,7 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
             return
     else:
         cfg = InstanceConfig(**{attr: spec[key] for key, attr in _INSTANCE_KEYS.items() if key in spec})
-        res = split_instances(node.mask, fm.colour, cfg, seed)
-        node.method, node.shares = "instances", list(res.shares)
-        node.meta = {**node.meta, **res.meta, "instance_labels": res.labels, "instance_kinds": res.kinds.tolist()}
-        node.children = [MaskNode(id=f"{node.id}.{i}", mask=m) for i, m in enumerate(res.masks)]
+        _set_instances(node, split_instances(node.mask, fm.colour, cfg, seed))
     made = {c.id.rsplit(".", 1)[1] for c in node.children}
     for key in sorted(set(children_spec) - made):
         logger.warning("%s: spec has children.%s but the split made no such child; ignored", node.id, key)
@@ -224,6 +224,31 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
         sub = children_spec.get(child.id.rsplit(".", 1)[1])
         if sub is not None:
             _split(child, sub, fm, seed)
+
+
+def _set_instances(node: MaskNode, res: Any) -> None:
+    """Make ``node`` an instance split with one child per kind of ``res`` (an InstanceSplit)."""
+    node.method, node.shares = "instances", list(res.shares)
+    node.meta = {**node.meta, **res.meta, "instance_labels": res.labels, "instance_kinds": res.kinds.tolist()}
+    node.children = [MaskNode(id=f"{node.id}.{i}", mask=m) for i, m in enumerate(res.masks)]
+
+
+#: an automatic instance split of the layout's cells needs at least this many separate cells
+AUTO_INSTANCE_MIN = 16
+
+
+def _cell_kinds(cells: MaskNode, fm: FeatureMaps, seed: int) -> None:
+    """Split the layout's cells (bricks, tiles, plates) into instance kinds when they are separate pieces that fall
+    into two or more kinds by appearance (paper 4.2): each brick then takes one kind's colour and texture, as in
+    the input, instead of a noise that mixes every brick's colour inside each brick. Few or merged cells, or a
+    single kind, leave the cells one leaf."""
+    res = split_instances(cells.mask, fm.colour, InstanceConfig(), seed)
+    kept = int(res.meta.get("kept", 0))
+    if kept < AUTO_INSTANCE_MIN or len(res.masks) < 2:
+        logger.info("%s: %d separate cell(s), %d kind(s): the cells stay one leaf", cells.id, kept, len(res.masks))
+        return
+    _set_instances(cells, res)
+    cells.meta["auto"] = True
 
 
 def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps, seed: int) -> None:
@@ -246,6 +271,8 @@ def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps,
         sub = children.get(child.id.rsplit(".", 1)[1])
         if sub is not None:
             _split(child, sub, fm, seed)
+    if "1" not in children:
+        _cell_kinds(root.children[1], fm, seed)
 
 
 def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode:
