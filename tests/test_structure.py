@@ -18,24 +18,32 @@ from workers.structure import find_structure
 N = 192
 
 
-def _wall(seed: int = 0) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves) with large dark stains over bricks
-    and mortar alike: (maps, true mortar, stains)."""
-    rng = np.random.default_rng(seed)
+def _running_bond(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves): (mortar, height, brick index)."""
     y, x = np.mgrid[:N, :N]
     row = y // 24
     xs = (x + (row % 2) * 24) % 48
     mortar = (y % 24 < 4) | (xs < 4)
     height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
     height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
+    return mortar, height, row * 8 + ((x + (row % 2) * 24) % N) // 48
+
+
+def _maps(albedo: np.ndarray, height: np.ndarray, rng: np.random.Generator) -> dict:
+    albedo = albedo + 0.015 * rng.standard_normal(albedo.shape)
+    return {"albedo": np.clip(albedo, 0, 1).astype(np.float32), "height": height,
+            "normal": height_to_normal(height, strength=4.0)}
+
+
+def _wall(seed: int = 0) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The running bond with large dark stains over bricks and mortar alike: (maps, true mortar, stains)."""
+    rng = np.random.default_rng(seed)
+    mortar, height, _ = _running_bond(rng)
     stains = ndimage.gaussian_filter(rng.standard_normal((N, N)), 14, mode="wrap")
     stains = stains > np.quantile(stains, 0.7)
     albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.45, 0.15, 0.08]))
     albedo = np.where(stains[..., None], albedo * 0.25, albedo)
-    albedo = albedo + 0.015 * rng.standard_normal(albedo.shape)
-    maps = {"albedo": np.clip(albedo, 0, 1).astype(np.float32), "height": height,
-            "normal": height_to_normal(height, strength=4.0)}
-    return maps, mortar, stains
+    return _maps(albedo, height, rng), mortar, stains
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -60,23 +68,14 @@ def test_first_split_is_the_mortar_not_the_stains():
 
 
 def _shaded_wall(seed: int = 0, dark_share: float = 0.3) -> tuple[dict, np.ndarray, np.ndarray]:
-    """The running bond of ``_wall`` without stains, each brick red or (``dark_share`` of them) dark brown:
+    """The running bond without stains, each brick red or (``dark_share`` of them) dark brown:
     (maps, true mortar, true dark bricks)."""
     rng = np.random.default_rng(seed)
-    y, x = np.mgrid[:N, :N]
-    row = y // 24
-    xs = (x + (row % 2) * 24) % 48
-    mortar = (y % 24 < 4) | (xs < 4)
-    brick_id = row * 8 + ((x + (row % 2) * 24) % N) // 48
+    mortar, height, brick_id = _running_bond(rng)
     dark = (rng.random(brick_id.max() + 1) < dark_share)[brick_id] & ~mortar
-    height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
-    height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
     albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.50, 0.16, 0.08]))
     albedo = np.where(dark[..., None], np.float32([0.16, 0.10, 0.07]), albedo)
-    albedo = albedo + 0.015 * rng.standard_normal(albedo.shape)
-    maps = {"albedo": np.clip(albedo, 0, 1).astype(np.float32), "height": height,
-            "normal": height_to_normal(height, strength=4.0)}
-    return maps, mortar, dark
+    return _maps(albedo, height, rng), mortar, dark
 
 
 def test_cells_of_two_shades_become_instance_kinds():

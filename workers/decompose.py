@@ -41,7 +41,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import InputError, ManifestError
-from .instances import InstanceConfig, split_instances
+from .instances import InstanceConfig, InstanceSplit, split_instances
 from .matting import MAX_LAYERS, FeatureMaps, MattingConfig, feature_maps, matte
 from .lattice import analyse_lattice
 from .structure import find_structure, layout_rank
@@ -226,8 +226,8 @@ def _split(node: MaskNode, spec: Mapping, fm: FeatureMaps, seed: int) -> None:
             _split(child, sub, fm, seed)
 
 
-def _set_instances(node: MaskNode, res: Any) -> None:
-    """Make ``node`` an instance split with one child per kind of ``res`` (an InstanceSplit)."""
+def _set_instances(node: MaskNode, res: InstanceSplit) -> None:
+    """Make ``node`` an instance split with one child per kind of ``res``."""
     node.method, node.shares = "instances", list(res.shares)
     node.meta = {**node.meta, **res.meta, "instance_labels": res.labels, "instance_kinds": res.kinds.tolist()}
     node.children = [MaskNode(id=f"{node.id}.{i}", mask=m) for i, m in enumerate(res.masks)]
@@ -253,7 +253,7 @@ def _cell_kinds(cells: MaskNode, fm: FeatureMaps, seed: int) -> None:
 
 def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps, seed: int) -> None:
     """Root split = the layout's network (root.0) and its cells (root.1); the cells split by colour when more
-    than 2 layers are asked for; children specs apply as usual."""
+    than 2 layers are asked for, else into instance kinds where they have some; children specs apply as usual."""
     root.method = "matting"
     root.meta["structure"] = split.describe()
     root.children = [MaskNode(id="root.0", mask=split.mask.copy()), MaskNode(id="root.1", mask=~split.mask)]
