@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.instances import InstanceConfig, cluster_instances, find_instances, split_instances
+from workers.instances import InstanceConfig, cluster_instances, find_instances, separate_cells, split_instances
 
 
 def tiles(n: int = 256, tile: int = 32, gap: int = 3, seed: int = 0):
@@ -84,6 +84,37 @@ def test_cluster_order_and_threshold():
     kinds = cluster_instances(np.concatenate([b, a]), 1.5)
     assert (kinds[:10] == 1).all() and (kinds[10:] == 0).all()  # the bigger kind comes first
     assert (cluster_instances(np.concatenate([b, a]), 100.0) == 0).all()
+
+
+def test_cluster_count_is_capped_by_max_kinds():
+    rng = np.random.default_rng(1)
+    centres = np.eye(6) * 3.0
+    feats = np.concatenate([c + rng.normal(0, 0.02, (8, 6)) for c in centres])
+    assert cluster_instances(feats, 1.5).max() + 1 == 6
+    capped = cluster_instances(feats, 1.5, max_kinds=3)
+    assert capped.max() + 1 == 3
+    # the cap merges whole clusters: each original group stays inside one kind
+    assert all(np.unique(capped[i * 8:(i + 1) * 8]).size == 1 for i in range(6))
+
+
+def test_cut_at_the_necks_gives_one_piece_per_tile():
+    """Tiles joined through 6 px gaps in 3 px grout, a gap in every tile's right and lower joint: one component;
+    cut at the necks, one piece per tile, each piece inside one tile, touching the border tiles joined."""
+    img, mask, truth, _ = tiles(n=128, tile=32, gap=3)
+    tile_id = (np.arange(128)[:, None] // 32) * 4 + np.arange(128)[None, :] // 32
+    joined = mask.copy()
+    for c in range(29, 128, 32):
+        for a in range(0, 128, 32):
+            joined[a + 12:a + 18, c:c + 3] = True   # gap in the vertical joint
+            joined[c:c + 3, a + 12:a + 18] = True   # and in the horizontal one
+    assert find_instances(joined)[1]["kept"] == 1
+    cut = separate_cells(joined, 32 / 3)
+    labels, info = find_instances(cut)
+    assert info["kept"] == 16, info
+    for k in range(1, 17):
+        ids, counts = np.unique(tile_id[(labels == k) & mask], return_counts=True)
+        assert counts.max() >= 0.97 * counts.sum(), (k, ids, counts)
+    assert (cut <= joined).all() and (cut[mask] ^ mask[mask]).mean() < 0.06
 
 
 def test_instances_cut_by_the_tile_border_are_joined():

@@ -13,20 +13,26 @@ from tests.conftest import real_material_files
 from workers import lattice as L
 from workers.decompose import decompose
 from workers.height import height_to_normal
+from workers.instances import find_instances
 from workers.structure import find_structure
 
 N = 192
 
 
-def _running_bond(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves): (mortar, height, brick index)."""
+def _running_bond(rng: np.random.Generator, worn: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves): (mortar, height, brick index).
+    ``worn``: the share of head joints with a 10 px gap in the middle of the course (the bricks touch there)."""
     y, x = np.mgrid[:N, :N]
     row = y // 24
     xs = (x + (row % 2) * 24) % 48
-    mortar = (y % 24 < 4) | (xs < 4)
+    brick = row * 8 + ((x + (row % 2) * 24) % N) // 48
+    gap = np.zeros((N, N), bool)
+    if worn > 0:
+        gap = (rng.random(brick.max() + 1) < worn)[brick] & (y % 24 >= 9) & (y % 24 < 19)
+    mortar = (y % 24 < 4) | ((xs < 4) & ~gap)
     height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
     height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
-    return mortar, height, row * 8 + ((x + (row % 2) * 24) % N) // 48
+    return mortar, height, brick
 
 
 def _maps(albedo: np.ndarray, height: np.ndarray, rng: np.random.Generator) -> dict:
@@ -67,11 +73,11 @@ def test_first_split_is_the_mortar_not_the_stains():
     assert best >= 0.7, best
 
 
-def _shaded_wall(seed: int = 0, dark_share: float = 0.3) -> tuple[dict, np.ndarray, np.ndarray]:
-    """The running bond without stains, each brick red or (``dark_share`` of them) dark brown:
-    (maps, true mortar, true dark bricks)."""
+def _shaded_wall(seed: int = 0, dark_share: float = 0.3, worn: float = 0.0) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The running bond without stains, each brick red or (``dark_share`` of them) dark brown, ``worn`` of the
+    head joints with a gap: (maps, true mortar, true dark bricks)."""
     rng = np.random.default_rng(seed)
-    mortar, height, brick_id = _running_bond(rng)
+    mortar, height, brick_id = _running_bond(rng, worn)
     dark = (rng.random(brick_id.max() + 1) < dark_share)[brick_id] & ~mortar
     albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.50, 0.16, 0.08]))
     albedo = np.where(dark[..., None], np.float32([0.16, 0.10, 0.07]), albedo)
@@ -94,6 +100,21 @@ def test_cells_of_two_shades_become_instance_kinds():
     assert decompose(same, {"layers": 2}).children[1].children == []
     kept = decompose(maps, {"layers": 2, "children": {"1": {"method": "leaf"}}})
     assert kept.children[1].children == [] and kept.children[1].method != "instances"
+
+
+def test_cells_joined_through_worn_joints_are_cut_apart():
+    """Most head joints worn through in the middle of the course: the bricks join into long pieces, which the
+    split cuts at their necks, so the two shades still become two kinds (IoU >= 0.8 with each shade's bricks)."""
+    maps, mortar, dark = _shaded_wall(worn=0.7)
+    joined = find_instances(~mortar)[1]["kept"]
+    root = decompose(maps, {"layers": 2})
+    cells = root.children[1]
+    assert cells.method == "instances", cells.meta
+    red = cells.mask & ~dark
+    ious = sorted(max(_iou(c.mask, t) for c in cells.children) for t in (red, dark & cells.mask))
+    print(f"{joined} pieces before the cut, {cells.meta['kept']} after (32 bricks); kind IoU {ious}")
+    assert joined <= 16 and 28 <= cells.meta["kept"] <= 36
+    assert ious[0] >= 0.8
 
 
 def test_scribbles_override_and_noise_keeps_colour_matting():

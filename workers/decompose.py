@@ -235,20 +235,29 @@ def _set_instances(node: MaskNode, res: InstanceSplit) -> None:
 
 #: an automatic instance split of the layout's cells needs at least this many separate cells
 AUTO_INSTANCE_MIN = 16
+#: the automatic split keeps at most this many kinds (a palette of cell appearances; each kind is a leaf whose
+#: noise is fitted on its own pixels, so more kinds cost fits and thin each kind's sample)
+AUTO_MAX_KINDS = 4
+#: markers of the cut at the cells' necks lie at least this fraction of the layout's period apart
+AUTO_SEPARATE = 1.0 / 3.0
 
 
-def _cell_kinds(cells: MaskNode, fm: FeatureMaps, seed: int) -> None:
+def _cell_kinds(cells: MaskNode, fm: FeatureMaps, period: float | None, seed: int) -> None:
     """Split the layout's cells (bricks, tiles, plates) into instance kinds when they are separate pieces that fall
     into two or more kinds by appearance (paper 4.2): each brick then takes one kind's colour and texture, as in
-    the input, instead of a noise that mixes every brick's colour inside each brick. Few or merged cells, or a
-    single kind, leave the cells one leaf."""
-    res = split_instances(cells.mask, fm.colour, InstanceConfig(), seed)
+    the input, instead of a noise that mixes every brick's colour inside each brick. The cells are cut at their
+    necks first (markers a third of the layout's period apart): a worn mortar line or a faded slate edge leaves
+    gaps in the network, and without the cut the cells join into a few large pieces. Few cells, or a single
+    kind, leave the cells one leaf."""
+    cfg = InstanceConfig(separate=max(3.0, AUTO_SEPARATE * period) if period else 0.0, max_kinds=AUTO_MAX_KINDS)
+    res = split_instances(cells.mask, fm.colour, cfg, seed)
     kept = int(res.meta.get("kept", 0))
     if kept < AUTO_INSTANCE_MIN or len(res.masks) < 2:
         logger.info("%s: %d separate cell(s), %d kind(s): the cells stay one leaf", cells.id, kept, len(res.masks))
         return
     _set_instances(cells, res)
     cells.meta["auto"] = True
+    cells.meta["separate"] = cfg.separate
 
 
 def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps, seed: int) -> None:
@@ -272,7 +281,7 @@ def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps,
         if sub is not None:
             _split(child, sub, fm, seed)
     if "1" not in children:
-        _cell_kinds(root.children[1], fm, seed)
+        _cell_kinds(root.children[1], fm, split.lattice.period, seed)
 
 
 def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode:

@@ -1,6 +1,9 @@
 """Instance decomposition (paper 4.2): connected components of a mask, grouped into kinds by appearance.
 
-Steps: optional open+close (2x2) of the parent mask; 4-connected components, joined across opposite image
+Steps: optional open+close (2x2) of the parent mask; optionally (``separate`` > 0) a cut of the mask at its necks,
+so that cells whose outline network has gaps (worn mortar, slate edges that fade) still come out one piece per
+cell: the watershed of the inside distance from markers at its local maxima at least ``separate`` px apart,
+computed on the periodically padded mask; 4-connected components, joined across opposite image
 borders (material maps tile; ``wrap``), so a brick cut by the border is one instance; drop components whose
 bounding box's shorter side is under ``min_side`` px; with more than ``outlier_min_count`` instances, drop size
 outliers (robust z-score of log area, |z| > ``outlier_z``; median/MAD, the Iglewicz-Hoaglin rule, instead of
@@ -9,7 +12,8 @@ pixels only (pixels of the bounding-box crop outside the instance are set to the
 crop is resized to ``crop_size``^2): |FFT2| of grey albedo, height, roughness (DC removed) and 10-bin
 histograms of r, g, b, height, roughness. Each block is L2-normalised per instance, reduced by PCA to
 <= ``pca_dims`` (a rotation: distances kept) and weighted 1/sqrt(2), so instance distances lie in [0, 2].
-Ward clustering cut at ``distance_threshold`` (default 1.5) gives the kinds; their number is free.
+Ward clustering cut at ``distance_threshold`` (default 1.5) gives the kinds; their number is free unless
+``max_kinds`` caps it (the tree is then cut where it has that many clusters).
 
 Pixels of the parent outside every kept instance (mortar gaps, dropped small pieces) join the kind of the
 nearest kept instance (Euclidean distance transform), so the children masks partition the parent exactly.
@@ -25,6 +29,8 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.sparse.csgraph import connected_components
+from skimage.feature import peak_local_max
+from skimage.segmentation import watershed
 
 from .errors import InputError
 from .spectrum import pca_project
@@ -45,6 +51,8 @@ class InstanceConfig:
     pca_dims: int = 32
     distance_threshold: float = 1.5
     wrap: bool = True             # material maps tile: components touching opposite borders are one instance
+    separate: float = 0.0         # > 0: cut the mask at its necks, markers this many px apart (0 = components only)
+    max_kinds: int = 0            # > 0: at most this many kinds
 
 
 @dataclass
@@ -95,12 +103,33 @@ def instance_pixels(labels: np.ndarray, wrap: bool = True) -> list[tuple[np.ndar
     return out
 
 
+def separate_cells(mask: np.ndarray, min_distance: float, wrap: bool = True) -> np.ndarray:
+    """mask less the watershed lines that cut it at its necks: markers at the local maxima of the (lightly
+    smoothed) distance to the outside, at least ``min_distance`` px apart. Two bricks joined through a gap in the
+    mortar become two pieces; a piece with one maximum stays whole. With wrap the mask is treated as periodic."""
+    m = np.asarray(mask, bool)
+    r = int(np.ceil(min_distance))
+    pad = min(max(2 * r, 8), *m.shape) if wrap else 0
+    big = np.pad(m, pad, mode="wrap") if pad else m
+    dist = ndimage.distance_transform_edt(big)
+    peaks = peak_local_max(ndimage.gaussian_filter(dist, 1.0), min_distance=max(1, r), labels=big.astype(np.int32),
+                           exclude_border=False)
+    markers = np.zeros(big.shape, np.int32)
+    markers[tuple(peaks.T)] = np.arange(1, len(peaks) + 1, dtype=np.int32)
+    cut = watershed(-dist, markers, mask=big, watershed_line=True) > 0
+    if pad:
+        cut = cut[pad:-pad, pad:-pad]
+    return m & cut
+
+
 def find_instances(mask: np.ndarray, config: InstanceConfig = InstanceConfig()) -> tuple[np.ndarray, dict]:
     """Kept instances of mask as labels 1..N (0 elsewhere) and counts of what was dropped and why."""
     m = np.asarray(mask, bool)
     if config.open_close:
         k = np.ones((2, 2), bool)
         m = ndimage.binary_closing(ndimage.binary_opening(m, k), k) & np.asarray(mask, bool)
+    if config.separate > 0:
+        m = separate_cells(m, config.separate, config.wrap)
     lab, n = ndimage.label(m)
     if config.wrap and n:
         lab, n = _merge_across_borders(lab, n)
@@ -180,13 +209,16 @@ def instance_features(labels: np.ndarray, channels: np.ndarray, grey_channels: l
     return np.concatenate(blocks, axis=1).astype(np.float32)
 
 
-def cluster_instances(features: np.ndarray, distance_threshold: float = 1.5) -> np.ndarray:
-    """Kind index per instance from Ward clustering cut at distance_threshold, kinds ordered by size."""
+def cluster_instances(features: np.ndarray, distance_threshold: float = 1.5, max_kinds: int = 0) -> np.ndarray:
+    """Kind index per instance from Ward clustering cut at distance_threshold (or where the tree has max_kinds
+    clusters, when the threshold leaves more), kinds ordered by size."""
     n = features.shape[0]
     if n < 2:
         return np.zeros(n, np.int64)
     z = linkage(features.astype(np.float64), method="ward")
     raw = fcluster(z, t=distance_threshold, criterion="distance") - 1
+    if max_kinds > 0 and raw.max() + 1 > max_kinds:
+        raw = fcluster(z, t=max_kinds, criterion="maxclust") - 1
     counts = np.bincount(raw)
     first = np.array([np.flatnonzero(raw == k)[0] if counts[k] else n for k in range(counts.size)])
     order = np.lexsort((first, -counts))  # most instances first, ties by first instance
@@ -209,7 +241,7 @@ def split_instances(mask: np.ndarray, channels: np.ndarray, config: InstanceConf
                        config.min_side, info["components"])
         return InstanceSplit(labels, np.zeros(0, np.int64), [mask.copy()], [1.0], np.zeros((0, 0), np.float32), info)
     feats = instance_features(labels, channels, config=config, seed=seed)
-    kinds = cluster_instances(feats, config.distance_threshold)
+    kinds = cluster_instances(feats, config.distance_threshold, config.max_kinds)
     n_kinds = int(kinds.max()) + 1
     # every parent pixel takes the kind of the nearest kept instance
     _, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
