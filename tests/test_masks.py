@@ -75,6 +75,21 @@ def test_sample_instances_reproduces_shares_on_large_canvas():
     assert not np.array_equal(labels, sample_instances(parent, shares, np.random.default_rng(4)))
 
 
+def test_sample_instances_cut_cells_joined_through_gaps():
+    """Cells whose outlines have gaps: components give one piece and one cluster everywhere; cut at the necks,
+    each cell draws its own cluster (both clusters appear, each cell essentially one cluster)."""
+    y, x = np.mgrid[:256, :256] % 32
+    parent = _grid_mask(8, 32) | ((x == 31) & (y >= 12) & (y < 20)) | ((y == 31) & (x >= 12) & (x < 20))
+    rng = np.random.default_rng(0)
+    assert np.unique(sample_instances(parent, [0.5, 0.5], rng)[parent]).size == 1
+    labels = sample_instances(parent, [0.5, 0.5], np.random.default_rng(0), separate=10.0)
+    assert np.all(labels[~parent] == -1) and np.all(labels[parent] >= 0)
+    cell = (np.arange(256)[:, None] // 32) * 8 + np.arange(256)[None, :] // 32
+    purity = [np.bincount(labels[(cell == k) & parent]).max() / ((cell == k) & parent).sum() for k in range(64)]
+    ones = np.mean([labels[(cell == k) & parent].mean() > 0.5 for k in range(64)])
+    assert min(purity) >= 0.9 and 0.3 < ones < 0.7, (min(purity), ones)
+
+
 def test_sample_instances_bad_shares():
     parent = _grid_mask(4, 6)
     with pytest.raises(InputError, match="shares"):
@@ -176,6 +191,9 @@ def test_node_validation_errors():
     mat.add("i", "instances", {"shares": [1, -2]}, parent="m")
     mat.nodes["m"]["params"] = {"params": [0.5] * 29, "ref_width": 64}
     with pytest.raises(GraphError, match="shares"):
+        graph.from_json(mat.to_json())
+    mat.nodes["i"]["params"] = {"shares": [1, 2], "separate": -3}
+    with pytest.raises(GraphError, match="separate"):
         graph.from_json(mat.to_json())
 
 

@@ -119,7 +119,8 @@ class Recomposer:
                 return
             if node.method == "instances":
                 inst = MK.add_instances_node(proc, gid("inst", node.id), abs_mask(node, parent),
-                                             node.shares or [1.0 / len(node.children)] * len(node.children))
+                                             node.shares or [1.0 / len(node.children)] * len(node.children),
+                                             float(node.meta.get("separate", 0.0)))
                 for i, c in enumerate(node.children):
                     mask_nodes[c.id] = proc.add(gid("mask", c.id), "channel", {"channels": [i]}, input=inst)
             else:

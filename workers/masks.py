@@ -42,6 +42,7 @@ from pptbf_db import pptbf as pp
 
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
+from .instances import separate_cells
 from .mask_opt import Budget, OptSettings, explore, optimise
 
 if TYPE_CHECKING:
@@ -593,10 +594,21 @@ def _check_shares(shares) -> np.ndarray:
     return s / s.sum()
 
 
-def sample_instances(parent_mask, shares, rng: np.random.Generator) -> np.ndarray:
-    """Cluster labels (HxW int, -1 outside the parent): each connected component draws a cluster from `shares`."""
+def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: float = 0.0) -> np.ndarray:
+    """Cluster labels (HxW int, -1 outside the parent): each connected component draws a cluster from `shares`.
+    ``separate`` > 0 first cuts the parent at its necks (``workers.instances.separate_cells``, markers that many
+    px apart), as the decomposition cut the input's cells before it measured their kinds: an outline network
+    with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece."""
     m = _check_mask(parent_mask, "parent_mask")
     p = _check_shares(shares)
+    if separate > 0:
+        lab, n = _components(separate_cells(m, separate))
+        draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
+        table = np.concatenate([[-1], draws]).astype(np.int64)
+        if n == 0:
+            return table[lab]
+        _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+        return np.where(m, table[lab[iy, ix]], -1)
     lab, n = _components(m)
     draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
     table = np.concatenate([[-1], draws]).astype(np.int64)
@@ -666,7 +678,8 @@ class PPTBFNode:
 
 @register_node
 class InstancesNode:
-    """One-hot cluster masks (HxWxK) of the connected components of input `parent`, drawn with `shares`."""
+    """One-hot cluster masks (HxWxK) of the connected components of input `parent`, drawn with `shares`;
+    optional `separate` (working-size px, follows the scale): cut the parent at its necks first."""
 
     name = "instances"
     inputs = ("parent",)
@@ -675,6 +688,9 @@ class InstancesNode:
         s = params.get("shares")
         if not isinstance(s, list) or not s:
             raise GraphError("instances.shares must be a non-empty list of numbers")
+        sep = params.get("separate", 0.0)
+        if not isinstance(sep, (int, float)) or isinstance(sep, bool) or not math.isfinite(sep) or not 0 <= sep <= 1e4:
+            raise GraphError("instances.separate must be a number of pixels in 0..10000 (0 = components only)")
         try:
             _check_shares(s)
         except InputError as exc:
@@ -684,7 +700,8 @@ class InstancesNode:
         if "parent" not in inputs:
             raise GraphError(f"instances node {node_id} needs input 'parent'")
         k = len(params["shares"])
-        labels = sample_instances(inputs["parent"][..., 0] > 0.5, params["shares"], ctx.rng(node_id))
+        sep = float(params.get("separate", 0.0)) * ctx.px_scale
+        labels = sample_instances(inputs["parent"][..., 0] > 0.5, params["shares"], ctx.rng(node_id), sep)
         out = np.zeros((ctx.height, ctx.width, k), dtype=np.float32)
         hh, ww = np.nonzero(labels >= 0)
         out[hh, ww, labels[hh, ww]] = 1.0
@@ -699,6 +716,9 @@ def add_mask_node(mat: ProceduralMaterial, node_id: str, fit: MaskFit, working_w
     return mat.add(node_id, "pptbf", fit.node_params(ww, pin_shift), **ins)
 
 
-def add_instances_node(mat: ProceduralMaterial, node_id: str, parent: str, shares) -> str:
+def add_instances_node(mat: ProceduralMaterial, node_id: str, parent: str, shares, separate: float = 0.0) -> str:
     """Add an "instances" node (HxWxK one-hot) over mask node `parent`; pick cluster i with a "channel" node."""
-    return mat.add(node_id, "instances", {"shares": [float(x) for x in _check_shares(shares)]}, parent=parent)
+    params: dict = {"shares": [float(x) for x in _check_shares(shares)]}
+    if separate > 0:
+        params["separate"] = round(float(separate), 3)
+    return mat.add(node_id, "instances", params, parent=parent)
