@@ -21,7 +21,8 @@ lattice, then regularity; at a small working size a 1-2 px mortar cut turns to s
 show the bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges),
 "root.1" = the cells; with more than 2 layers (or "auto"), the cells are split again by colour matting
 (layers - 1, or "auto") as "root.1.*", so stains and colour variation become nested splits. With 2 layers,
-cells that are separate pieces (at least ``AUTO_INSTANCE_MIN``) and fall into two or more kinds by appearance
+the cells are cut at their necks (``AUTO_SEPARATE`` of the period between markers); when that gives at least
+``AUTO_INSTANCE_MIN`` pieces in two or more kinds (at most ``AUTO_MAX_KINDS``) by appearance, they
 become an instance split "root.1.*" (each brick one kind's colour, as in the input); otherwise the cells stay
 one leaf and their variation stays in its noise. Children specs apply to root.0 / root.1 as usual
 (``children = {"1" = {method = "leaf"}}`` keeps the cells one leaf). Scribbles override it;
