@@ -601,17 +601,12 @@ def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: fl
     with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece."""
     m = _check_mask(parent_mask, "parent_mask")
     p = _check_shares(shares)
-    if separate > 0:
-        lab, n = _components(separate_cells(m, separate))
-        draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
-        table = np.concatenate([[-1], draws]).astype(np.int64)
-        if n == 0:
-            return table[lab]
-        _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-        return np.where(m, table[lab[iy, ix]], -1)
-    lab, n = _components(m)
+    lab, n = _components(separate_cells(m, separate) if separate > 0 else m)
     draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
     table = np.concatenate([[-1], draws]).astype(np.int64)
+    if separate > 0 and n:   # the cut lines take the kind of the nearest piece
+        _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+        return np.where(m, table[lab[iy, ix]], -1)
     return table[lab]
 
 
