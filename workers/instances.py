@@ -122,6 +122,13 @@ def separate_cells(mask: np.ndarray, min_distance: float, wrap: bool = True) -> 
     return m & cut
 
 
+def nearest_labels(labels: np.ndarray) -> np.ndarray:
+    """labels with every 0 pixel given the label of its nearest labelled pixel (Euclidean distance transform):
+    gaps and cut lines join the nearest piece, so pieces extended this way partition their parent."""
+    _, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+    return labels[iy, ix]
+
+
 def find_instances(mask: np.ndarray, config: InstanceConfig = InstanceConfig()) -> tuple[np.ndarray, dict]:
     """Kept instances of mask as labels 1..N (0 elsewhere) and counts of what was dropped and why."""
     m = np.asarray(mask, bool)
@@ -244,8 +251,7 @@ def split_instances(mask: np.ndarray, channels: np.ndarray, config: InstanceConf
     kinds = cluster_instances(feats, config.distance_threshold, config.max_kinds)
     n_kinds = int(kinds.max()) + 1
     # every parent pixel takes the kind of the nearest kept instance
-    _, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
-    nearest = labels[iy, ix]
+    nearest = nearest_labels(labels)
     kind_map = np.where(mask, kinds[np.maximum(nearest, 1) - 1], -1)
     masks = [kind_map == k for k in range(n_kinds)]
     counts = np.bincount(kinds, minlength=n_kinds)

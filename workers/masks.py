@@ -42,7 +42,7 @@ from pptbf_db import pptbf as pp
 
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
-from .instances import separate_cells
+from .instances import nearest_labels, separate_cells
 from .mask_opt import Budget, OptSettings, explore, optimise
 
 if TYPE_CHECKING:
@@ -605,8 +605,7 @@ def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: fl
     draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
     table = np.concatenate([[-1], draws]).astype(np.int64)
     if separate > 0 and n:   # the cut lines take the kind of the nearest piece
-        _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-        return np.where(m, table[lab[iy, ix]], -1)
+        return np.where(m, table[nearest_labels(lab)], -1)
     return table[lab]
 
 
