@@ -9,7 +9,8 @@ pavement 16-17; lattice period 12-48 px, random rotation and aspect ratio (0.6-1
 random cellular window (larp, smoothness, sector count) and threshold. Each is fitted from scratch
 (fit_pptbf_mask with the bundled database, one torch thread). Columns:
   lat      period error (%) and angle error (deg) of a fresh realisation's lattice against the target's
-           (workers.lattice.compare_lattices); acceptance: period within 5 % and angle within 3 deg on >= 90 %
+           (workers.lattice.compare_lattices; for a target of rows, the realisation's rows next to the target's,
+           workers.lattice.compare_rows); acceptance: period within 5 % and angle within 3 deg on >= 90 %
   tru      whether a fresh realisation of the true parameters passes that check itself (where it does not, the
            target has no lattice that survives a redraw and the check is a matter of chance for any fit)
   lay      the same check on the parameters: the lattice the fit's layout puts its cells on against the truth's
@@ -100,6 +101,15 @@ def scores(loss: GramMaskLoss, params, complement: bool) -> tuple[float, float]:
     return g, t
 
 
+def realised_lattice(target: L.Lattice, mask: np.ndarray) -> tuple[float, float]:
+    """(period error, angle error) of a render's lattice against the target's: for a target of rows, the render's
+    rows next to the target's (lattice.compare_rows: a render's own analysis can report its repeat along the
+    rows instead), else the render's own lattice (lattice.compare_lattices)."""
+    if target.kind == "rows":
+        return L.compare_rows(target, mask)
+    return L.compare_lattices(target, L.analyse_lattice(mask))
+
+
 def fit_and_compare(mask: np.ndarray, target: np.ndarray, index, args, seed: int):
     """Fit `mask` (any size) from scratch; (fit, seconds, target lattice, fresh realisation's lattice, period
     error, angle error, loss at SIZE) with `target` the mask at SIZE."""
@@ -109,7 +119,7 @@ def fit_and_compare(mask: np.ndarray, target: np.ndarray, index, args, seed: int
     secs = time.perf_counter() - t0
     out = fit.render(SIZE, SIZE, shift=FRESH[0])
     lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
-    per, ang = L.compare_lattices(lt, lo)
+    per, ang = realised_lattice(lt, out)
     return fit, secs, out, lt, lo, per, ang, GramMaskLoss(target, factor=loss_factor(SIZE))
 
 
@@ -128,8 +138,7 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
             continue
         fit, secs, out, lt, lo, per, ang, loss = fit_and_compare(target, target, index, args, k)
         (d_fit, l_fit), (d_true, l_true) = scores(loss, fit.params, fit.complement), scores(loss, p, False)
-        truth_ok = lattice_ok(*L.compare_lattices(lt, L.analyse_lattice(pp.render_mask(p, SIZE, SIZE,
-                                                                                        shift=FRESH[0]))))
+        truth_ok = lattice_ok(*realised_lattice(lt, pp.render_mask(p, SIZE, SIZE, shift=FRESH[0])))
         layout_ok = lattice_ok(*L.compare_layouts(p, fit.params))
         row = dict(k=k, tiling=t, res=int(p[3]), fit_tiling=int(fit.params[1]), period_err=per, angle_err=ang,
                    family=L.same_family(t, int(fit.params[1])), ratio=d_fit / d_true, ratio_loss=l_fit / l_true,
@@ -186,7 +195,8 @@ def run_real(args, index, panels: Path | None) -> list[dict]:
             imgs.append(_up(loss.render(hp, hc, True, shift=FRESH[0]), m.shape[0]))
         rows.append(dict(name=name, period=lt.period, period_err=per, angle_err=ang, ratio=d_fit / hand,
                          ratio_loss=l_fit / l_hand, seconds=secs))
-        print(f"{name:<22} {lt.kind:>5} {lt.period or 0:>6.1f} | {lo.period or 0:>7.1f} {100 * per:>5.1f} "
+        fit_period = L.rows_match(out, lt)[0] if lt.kind == "rows" else (lo.period or 0.0)
+        print(f"{name:<22} {lt.kind:>5} {lt.period or 0:>6.1f} | {fit_period:>7.1f} {100 * per:>5.1f} "
               f"{ang:>5.1f} | {d_fit:>6.4f} {hand:>6.4f} {d_fit / hand:>5.2f} {l_fit / l_hand:>5.2f} | "
               f"{secs:>4.0f} {fit.meta.get('method', 'query')}", flush=True)
         if panels:

@@ -135,7 +135,7 @@ def test_window_lines_reach_the_split_sibling():
 def test_lattice_gate_keeps_random_bricks_on_their_rows():
     """Random bricks (bench target 20): fresh realisations of the true parameters read as having no lattice, so
     the gate turned the true layout away (the fit ended at 5.8x the truth's Gram distance); they repeat at the
-    target's rows (``row_repeat``) and pass now, while rows 20 % taller do not."""
+    target's rows (``lattice.compare_rows``) and pass now, while rows 20 % taller do not."""
     from workers.layout_fit import _keeps_lattice
 
     I = pp.PARAM_INDEX

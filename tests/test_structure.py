@@ -19,17 +19,21 @@ from workers.structure import find_structure
 N = 192
 
 
-def _running_bond(rng: np.random.Generator, worn: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves): (mortar, height, brick index).
-    ``worn``: the share of head joints with a 10 px gap in the middle of the course (the bricks touch there)."""
+def _running_bond(rng: np.random.Generator, worn: float = 0.0,
+                  course: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Running-bond bricks (24 px courses, 48 px bricks, 4 px mortar grooves; other sizes in proportion):
+    (mortar, height, brick index). ``worn``: the share of head joints with a gap over the middle 10/24 of the
+    course (the bricks touch there)."""
     y, x = np.mgrid[:N, :N]
-    row = y // 24
-    xs = (x + (row % 2) * 24) % 48
-    brick = row * 8 + ((x + (row % 2) * 24) % N) // 48
+    half, joint = course, max(1, course // 6)
+    row = y // course
+    xs = (x + (row % 2) * half) % (2 * course)
+    brick = row * (N // (2 * course)) + ((x + (row % 2) * half) % N) // (2 * course)
     gap = np.zeros((N, N), bool)
     if worn > 0:
-        gap = (rng.random(brick.max() + 1) < worn)[brick] & (y % 24 >= 9) & (y % 24 < 19)
-    mortar = (y % 24 < 4) | ((xs < 4) & ~gap)
+        gap = (rng.random(brick.max() + 1) < worn)[brick] & (y % course >= 9 * course // 24) & \
+            (y % course < 19 * course // 24)
+    mortar = (y % course < joint) | ((xs < joint) & ~gap)
     height = np.where(mortar, 0.0, 1.0) + 0.05 * ndimage.gaussian_filter(rng.standard_normal((N, N)), 2, mode="wrap")
     height = ndimage.gaussian_filter(height, 0.7, mode="wrap").astype(np.float32)
     return mortar, height, brick
@@ -73,11 +77,12 @@ def test_first_split_is_the_mortar_not_the_stains():
     assert best >= 0.7, best
 
 
-def _shaded_wall(seed: int = 0, dark_share: float = 0.3, worn: float = 0.0) -> tuple[dict, np.ndarray, np.ndarray]:
+def _shaded_wall(seed: int = 0, dark_share: float = 0.3, worn: float = 0.0,
+                 course: int = 24) -> tuple[dict, np.ndarray, np.ndarray]:
     """The running bond without stains, each brick red or (``dark_share`` of them) dark brown, ``worn`` of the
     head joints with a gap: (maps, true mortar, true dark bricks)."""
     rng = np.random.default_rng(seed)
-    mortar, height, brick_id = _running_bond(rng, worn)
+    mortar, height, brick_id = _running_bond(rng, worn, course)
     dark = (rng.random(brick_id.max() + 1) < dark_share)[brick_id] & ~mortar
     albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.50, 0.16, 0.08]))
     albedo = np.where(dark[..., None], np.float32([0.16, 0.10, 0.07]), albedo)
@@ -115,6 +120,22 @@ def test_cells_joined_through_worn_joints_are_cut_apart():
     print(f"{joined} pieces before the cut, {cells.meta['kept']} after (32 bricks); kind IoU {ious}")
     assert joined <= 16 and 28 <= cells.meta["kept"] <= 36
     assert ious[0] >= 0.8
+
+
+def test_small_bricks_still_become_instance_kinds():
+    """Courses 8 px apart (bricks 6 px tall, as a slate roof at 256 px): the pieces' size bar follows the
+    layout's period, so the bricks are kept and the kinds follow the shades: each kind is >= 90 % one shade and
+    each shade's bricks are >= 80 % in kinds of that shade (a fixed 10 px bar dropped every brick: one leaf)."""
+    maps, mortar, dark = _shaded_wall(course=8)
+    cells = decompose(maps, {"layers": 2}).children[1]
+    assert cells.method == "instances", cells.meta
+    shades = (cells.mask & ~dark, cells.mask & dark)
+    owner = [int(np.argmax([(c.mask & t).sum() for t in shades])) for c in cells.children]
+    purity = [float((c.mask & shades[o]).sum() / c.mask.sum()) for c, o in zip(cells.children, owner)]
+    cover = [float(sum((c.mask & t).sum() for c, o in zip(cells.children, owner) if o == k) / t.sum())
+             for k, t in enumerate(shades)]
+    print(f"{cells.meta['kept']} pieces kept (288 bricks), {len(owner)} kinds, purity {purity}, cover {cover}")
+    assert cells.meta["kept"] >= 200 and min(purity) >= 0.9 and min(cover) >= 0.8
 
 
 def test_scribbles_override_and_noise_keeps_colour_matting():

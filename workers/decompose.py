@@ -21,7 +21,8 @@ lattice, then regularity; at a small working size a 1-2 px mortar cut turns to s
 show the bricks), the root's split is that layout: "root.0" = the network (mortar, grout, seams, edges),
 "root.1" = the cells; with more than 2 layers (or "auto"), the cells are split again by colour matting
 (layers - 1, or "auto") as "root.1.*", so stains and colour variation become nested splits. With 2 layers,
-the cells are cut at their necks (``AUTO_SEPARATE`` of the period between markers); when that gives at least
+the cells are cut at their necks (``AUTO_SEPARATE`` of the period between markers; pieces shorter than
+``AUTO_MIN_SIDE`` of it are fragments); when that gives at least
 ``AUTO_INSTANCE_MIN`` pieces in two or more kinds (at most ``AUTO_MAX_KINDS``) by appearance, they
 become an instance split "root.1.*" (each brick one kind's colour, as in the input); otherwise the cells stay
 one leaf and their variation stays in its noise. Children specs apply to root.0 / root.1 as usual
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import logging
 import numbers
+from dataclasses import replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -241,6 +243,9 @@ AUTO_INSTANCE_MIN = 16
 AUTO_MAX_KINDS = 4
 #: markers of the cut at the cells' necks lie at least this fraction of the layout's period apart
 AUTO_SEPARATE = 1.0 / 3.0
+#: pieces whose bounding box is shorter than this fraction of the layout's period are dropped as fragments (at
+#: most ``InstanceConfig.min_side``, at least 3 px): a fixed 10 px bar dropped every slate of a roof at 256 px
+AUTO_MIN_SIDE = 0.5
 
 
 def _cell_kinds(cells: MaskNode, fm: FeatureMaps, period: float | None, seed: int) -> None:
@@ -250,7 +255,10 @@ def _cell_kinds(cells: MaskNode, fm: FeatureMaps, period: float | None, seed: in
     necks first (markers a third of the layout's period apart): a worn mortar line or a faded slate edge leaves
     gaps in the network, and without the cut the cells join into a few large pieces. Few cells, or a single
     kind, leave the cells one leaf."""
-    cfg = InstanceConfig(separate=max(3.0, AUTO_SEPARATE * period) if period else 0.0, max_kinds=AUTO_MAX_KINDS)
+    base = InstanceConfig()
+    min_side = int(np.clip(round(AUTO_MIN_SIDE * period), 3, base.min_side)) if period else base.min_side
+    cfg = replace(base, separate=max(3.0, AUTO_SEPARATE * period) if period else 0.0, max_kinds=AUTO_MAX_KINDS,
+                  min_side=min_side)
     res = split_instances(cells.mask, fm.colour, cfg, seed)
     kept = int(res.meta.get("kept", 0))
     if kept < AUTO_INSTANCE_MIN or len(res.masks) < 2:
@@ -259,6 +267,7 @@ def _cell_kinds(cells: MaskNode, fm: FeatureMaps, period: float | None, seed: in
     _set_instances(cells, res)
     cells.meta["auto"] = True
     cells.meta["separate"] = cfg.separate
+    cells.meta["min_side"] = cfg.min_side
 
 
 def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps, seed: int) -> None:
