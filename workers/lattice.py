@@ -152,14 +152,18 @@ def radial_profile(ac: np.ndarray) -> np.ndarray:
     return np.stack([mean, np.sqrt(np.maximum(var, 0.0))])
 
 
-def _contrast(ac: np.ndarray, prof: np.ndarray, pts: np.ndarray, z: bool = False) -> float:
-    """Mean height of the autocorrelation at lags pts above its ring mean at the same radius; with `z`, in
+def _heights(ac: np.ndarray, prof: np.ndarray, pts: np.ndarray, z: bool = False) -> np.ndarray:
+    """Height of the autocorrelation at each lag of pts above its ring mean at the same radius; with `z`, in
     units of the ring's standard deviation (floored at 0.02: a clean synthetic layout has almost no spread)."""
     r = np.linalg.norm(pts, axis=1)
     grid = np.arange(prof.shape[1])
-    mean, std = np.interp(r, grid, prof[0]), np.interp(r, grid, prof[1])
-    d = _sample(ac, pts) - mean
-    return float((d / np.maximum(std, 0.02) if z else d).mean())
+    d = _sample(ac, pts) - np.interp(r, grid, prof[0])
+    return d / np.maximum(np.interp(r, grid, prof[1]), 0.02) if z else d
+
+
+def _contrast(ac: np.ndarray, prof: np.ndarray, pts: np.ndarray, z: bool = False) -> float:
+    """Mean of ``_heights`` over the lags pts."""
+    return float(_heights(ac, prof, pts, z).mean())
 
 
 def _score(ac: np.ndarray, prof: np.ndarray, basis: np.ndarray, radius: float, z: bool = False) -> float:
@@ -362,10 +366,7 @@ def rows_match(mask: np.ndarray, lat: Lattice) -> tuple[float, float, float]:
     span = np.linspace(-1.0, 1.0, 9)
     pts = np.concatenate([(m * ll)[:, None, None] * (across[:, None, :] + span[None, :, None] * along[:, None, :] / m)
                           for m in (1.0, 2.0)], axis=1).reshape(-1, 2)
-    r = np.linalg.norm(pts, axis=1)
-    grid = np.arange(prof.shape[1])
-    z = (_sample(ac, pts) - np.interp(r, grid, prof[0])) / np.maximum(np.interp(r, grid, prof[1]), 0.02)
-    z = z.reshape(len(ll), -1).mean(axis=1)
+    z = _heights(ac, prof, pts, z=True).reshape(len(ll), -1).mean(axis=1)
     k = int(np.argmax(z))
     return float(ll[k]), abs(math.degrees(float(aa[k]))), float(z[k])
 

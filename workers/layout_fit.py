@@ -249,15 +249,22 @@ def _arity_sweep(budget: Budget, x: np.ndarray) -> np.ndarray:
 ASPECT_FACTORS = (0.8, 0.9, 1.1, 1.25)
 
 
+def _halving(budget: Budget, x: np.ndarray, name: str, step: float, relative: bool = False) -> np.ndarray:
+    """Two line steps of entry `name` either side of its value, the second half the first (`relative`: steps
+    are fractions of the value)."""
+    i = pp.PARAM_INDEX[name]
+    for _ in range(2):
+        d = step * x[i] if relative else step
+        x = _line(budget, x, name, (x[i] - d, x[i] + d))
+        step /= 2.0
+    return x
+
+
 def _aspect_line(budget: Budget, x: np.ndarray) -> np.ndarray:
     """x with its aspect ratio scaled by the best of ASPECT_FACTORS (or kept), then two halving steps."""
     i = pp.PARAM_INDEX["aspect_ratio"]
     x = _line(budget, x, "aspect_ratio", tuple(x[i] * f for f in ASPECT_FACTORS))
-    step = 0.05
-    for _ in range(2):
-        x = _line(budget, x, "aspect_ratio", (x[i] * (1.0 - step), x[i] * (1.0 + step)))
-        step /= 2.0
-    return x
+    return _halving(budget, x, "aspect_ratio", 0.05, relative=True)
 
 
 def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = True,
@@ -287,11 +294,7 @@ def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = T
                 x = _line(budget, x, name, values)
             for name in WINDOW_REFINED:
                 values = WINDOW_LINES[name]
-                step = (max(values) - min(values)) / (len(values) - 1) / 2.0
-                for _ in range(2):
-                    v = x[pp.PARAM_INDEX[name]]
-                    x = _line(budget, x, name, (v - step, v + step))
-                    step /= 2.0
+                x = _halving(budget, x, name, (max(values) - min(values)) / (len(values) - 1) / 2.0)
             if aspect:
                 x = _aspect_line(budget, x)
             if budget(x) >= before:
@@ -586,9 +589,8 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     c = min(searches, key=lambda k: searches[k].best_loss)
     s = searches[c]
     s.max_evals = max(s.evaluations, cap - sum(x.evaluations for k, x in searches.items() if k != c))
-    first_evals = sum(x.evaluations for x in searches.values())
-    # full size: the judge of the layouts on the lattice during the crop search, then the window entries
-    b = Budget(lambda q, c=c: loss(q, c), max(0, max_evals - (0 if crop is not None else first_evals)), deadline)
+    # full size: the judge of the layouts on the lattice during a crop search, then the window entries
+    b = Budget(lambda q, c=c: loss(q, c), max_evals, deadline)
     if c == compl:
         b.seed(x0, own)
     end = window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3, sweep=True, aspect=rows,
