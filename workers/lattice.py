@@ -324,7 +324,7 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
     # points carry at least rows_ratio of the strongest vector's contrast (real walls drift from row to row)
     if max(z1, z2) >= cfg.min_significance and best2 is not None and best2[0] >= cfg.rows_ratio * s1:
-        return _describe_2d(ac, best2[1], best2[0], max(z1, z2), base, radius)
+        return _describe_2d(ac, prof, best2[1], best2[0], max(z1, z2), base, radius)
     if v is not None:
         if z1 >= cfg.min_significance:
             ang = math.degrees(math.atan2(v[1], v[0])) + 90.0
@@ -435,10 +435,12 @@ def _refine_rows(ac: np.ndarray, v: np.ndarray, radius: float) -> np.ndarray:
     return (obs[good] * ks[good, None]).sum(axis=0) / (ks[good] ** 2).sum()
 
 
-def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: dict, radius: float) -> Lattice:
+def _describe_2d(ac: np.ndarray, prof: np.ndarray, b: np.ndarray, score: float, z: float, base: dict,
+                 radius: float) -> Lattice:
     """Rows, row offset and orientation of a reduced 2-D basis: rows run along the short lattice vector (basis,
     sum or difference) along which the autocorrelation stays highest between lattice points (continuous mortar
-    lines of a brick course keep matching along the course, not across it)."""
+    lines of a brick course keep matching along the course, not across it). Rows only when the cuts along the
+    rows are random (``_cuts_random``) or a short lattice point does not stand out (``_points_stand``)."""
     area = abs(float(np.linalg.det(b)))
     best = None
     for c in ((1, 0), (0, 1), (1, 1), (1, -1)):
@@ -452,7 +454,7 @@ def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: di
     t = float(other @ row) / float(row @ row)
     off = abs(t - round(t))
     ang = math.degrees(math.atan2(row[1], row[0])) % 180.0
-    if _cuts_random(ac, b, row, radius):
+    if _cuts_random(ac, b, row, radius) or not _points_stand(ac, prof, b):
         normal = np.array([-row[1], row[0]]) / float(np.linalg.norm(row)) * spacing
         normal = normal if normal[1] > 0 or (normal[1] == 0 and normal[0] > 0) else -normal
         return Lattice(kind="rows", vectors=[(float(normal[0]), float(normal[1]))], regularity=float(score),
@@ -461,6 +463,20 @@ def _describe_2d(ac: np.ndarray, b: np.ndarray, score: float, z: float, base: di
     return Lattice(kind="2d", vectors=[(float(b[0][0]), float(b[0][1])), (float(b[1][0]), float(b[1][1]))],
                    regularity=float(score), significance=float(z), row_vector=(float(row[0]), float(row[1])),
                    row_spacing=float(spacing), row_offset=float(off), orientation_deg=float(ang), **base)
+
+
+#: every short point of a 2-D lattice (the basis vectors, their sum and difference) stands at least this many ring
+#: standard deviations above its ring mean: rows of random heights (ashlars) repeat along the rows, and the lags
+#: across them that happen to match in one draw make a lattice whose other points are not there (bench targets
+#: 4 and 18: 0.3 and 0.5 at the sum of the basis, which a fresh draw of the same parameters does not repeat;
+#: regular layouts of the bench and the real walls, roofs and plates: 1.3 or more)
+POINT_Z = 1.0
+
+
+def _points_stand(ac: np.ndarray, prof: np.ndarray, b: np.ndarray) -> bool:
+    """Every short lattice point of the reduced basis b stands POINT_Z ring deviations above its ring mean."""
+    pts = np.stack([b[0], b[1], b[0] + b[1], b[0] - b[1]])
+    return bool(_heights(ac, prof, pts, z=True).min() >= POINT_Z)
 
 
 #: a 2-D lattice whose points stand less than this share of their height above the row ridge is rows only

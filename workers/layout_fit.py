@@ -242,11 +242,13 @@ def _arity_sweep(budget: Budget, x: np.ndarray) -> np.ndarray:
     return best
 
 
-#: factors of the cells' aspect ratio tried on a target of rows (``window_lines``' `aspect`), then refined by
-#: halving steps: rows fix the row height, not the cells' length along them, and the lattice analysis's mean
-#: cell length is an estimate (bench target 3: 40.4 px measured, 45 px true; Gram distance of fresh
-#: realisations 0.24 at the measured length, 0.175 at the true one)
-ASPECT_FACTORS = (0.8, 0.9, 1.1, 1.25)
+#: factors of a layout entry tried by ``_factor_line``, then refined by halving steps: on a target of rows the
+#: cells' aspect ratio (rows fix the row height, not the cells' length along them, and the lattice analysis's
+#: mean cell length is an estimate: bench target 3: 40.4 px measured, 45 px true; Gram distance of fresh
+#: realisations 0.24 at the measured length, 0.175 at the true one), and on rows of random heights the
+#: resolution too (their mean height crossed on one draw is an estimate: bench target 18, 40 px measured, 48 px
+#: true; Gram distance 0.18 at 40 px, 0.092 at 48 px)
+FACTORS = (0.8, 0.9, 1.1, 1.25)
 
 
 def _halving(budget: Budget, x: np.ndarray, name: str, step: float, relative: bool = False) -> np.ndarray:
@@ -260,15 +262,15 @@ def _halving(budget: Budget, x: np.ndarray, name: str, step: float, relative: bo
     return x
 
 
-def _aspect_line(budget: Budget, x: np.ndarray) -> np.ndarray:
-    """x with its aspect ratio scaled by the best of ASPECT_FACTORS (or kept), then two halving steps."""
-    i = pp.PARAM_INDEX["aspect_ratio"]
-    x = _line(budget, x, "aspect_ratio", tuple(x[i] * f for f in ASPECT_FACTORS))
-    return _halving(budget, x, "aspect_ratio", 0.05, relative=True)
+def _factor_line(budget: Budget, x: np.ndarray, name: str) -> np.ndarray:
+    """x with entry `name` scaled by the best of FACTORS (or kept), then two halving steps."""
+    i = pp.PARAM_INDEX[name]
+    x = _line(budget, x, name, tuple(x[i] * f for f in FACTORS))
+    return _halving(budget, x, name, 0.05, relative=True)
 
 
-def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = True,
-                 sweep: bool = False, aspect: bool = False, judge: Budget | None = None) -> np.ndarray:
+def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = True, sweep: bool = False,
+                 scaled: tuple[str, ...] = (), judge: Budget | None = None) -> np.ndarray:
     """Coordinate line search over the cell shape (WINDOW_LINES), layout untouched: each entry over its values,
     then halving steps around the best (two per entry), cycle after cycle until one improves nothing; returns
     the best vector (also the budget's). A coarse grid over larp x smoothness x arity misses the narrow valleys
@@ -281,6 +283,8 @@ def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = T
     x = pp.clip_params(np.asarray(x0, np.float64))
     pick = judge or budget
     try:
+        for name in scaled:     # the cells' size first: the layouts on the lattice compare at it
+            x = _factor_line(budget, x, name)
         if scan:
             x = _scan_layouts(budget, x, judge)
         if sweep:           # on the layout the scan chose (a split pavement's half turn: bench target 14)
@@ -295,8 +299,8 @@ def window_lines(budget: Budget, x0: np.ndarray, cycles: int = 3, scan: bool = T
             for name in WINDOW_REFINED:
                 values = WINDOW_LINES[name]
                 x = _halving(budget, x, name, (max(values) - min(values)) / (len(values) - 1) / 2.0)
-            if aspect:
-                x = _aspect_line(budget, x)
+            for name in scaled:
+                x = _factor_line(budget, x, name)
             if budget(x) >= before:
                 break
     except BudgetExhausted:
@@ -563,15 +567,25 @@ class _Window:
     search_evals: int
 
 
+def scaled_entries(lat: Lattice) -> tuple[str, ...]:
+    """The layout entries the window stage scales by ``_factor_line`` (the rest of the layout stays as the
+    lattice put it): on rows, the aspect ratio (cells' length along them), and on rows of random heights
+    (``random_heights``) the resolution (their mean height) too."""
+    if lat.kind != "rows":
+        return ()
+    return ("aspect_ratio", "resolution") if random_heights(lat) else ("aspect_ratio",)
+
+
 def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, width: int, max_evals: int,
                   deadline: float, cfg: MaskFitConfig, seed: int, network_known: bool = False,
-                  rows: bool = False) -> _Window:
+                  scaled: tuple[str, ...] = ()) -> _Window:
     """Layout frozen: the cell shape by line search (``window_lines``) on the crop, one cycle in each polarity
     unless the lattice analysis knows which side is the network (the crisp template may prefer the complement
     that the target's own cell shape does not: a pavement with round 16-sector cells), more cycles in the
     better one, after the short line search of each layout on the lattice (``_scan_layouts``; run in both
     polarities it took the whole budget and a pavement's cell shape was lost) and the sweep over sector counts
-    (``_arity_sweep``), with the cells' aspect ratio a line of its own on a target of `rows`; then the window entries by local
+    (``_arity_sweep``), with a line of its own for each layout entry in `scaled` (``scaled_entries``); then the
+    window entries by local
     search (window shape and mixture by sweep) at full size from the line search's best or its half turn or
     split sibling, whichever scores best at full size (the crop ranks them less surely). Without a crop the line
     search runs on the full-size loss, counted."""
@@ -593,7 +607,7 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     b = Budget(lambda q, c=c: loss(q, c), max_evals, deadline)
     if c == compl:
         b.seed(x0, own)
-    end = window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3, sweep=True, aspect=rows,
+    end = window_lines(s, x0 if s.best_params is None else s.best_params, cycles=3, sweep=True, scaled=scaled,
                        judge=b if crop is not None else None)
     search_evals = sum(x.evaluations for x in searches.values())
     counted = 0 if crop is not None else search_evals
@@ -670,7 +684,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     now = time.perf_counter()
     win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left),
                         now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
-                        network_known=network_side_known(lat), rows=lat.kind == "rows")
+                        network_known=network_side_known(lat), scaled=scaled_entries(lat))
     b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
     history += win.history
     logger.info("layout fit: window stage from %s (%.4f): %d evals (+%d on the crop) -> %.4f%s, %.1f s into the "
