@@ -174,8 +174,7 @@ def imread_mask(name: str, size: int = 256) -> np.ndarray:
 def test_rows_of_random_heights_have_their_mean_height():
     """An ashlar (rows of random heights, 35 px on average) repeats in the autocorrelation only every few rows;
     the rows' mean height (network lines crossed across the rows) is within 10 % of 35 px, and match_tilings
-    offers the ashlars at that height first (bench/layout.py's target 3; other ashlars read as a spurious 2-D
-    lattice and are not helped)."""
+    offers the ashlars at that height first (bench/layout.py's target 3)."""
     p = L.layout_params(L.LatticeMatch(6, 35.0, 1.293, 0.778, 0.0), 0.591, larp=0.721)
     for name, v in (("jitter", 0.053), ("window_arity", 5.0), ("window_smoothness", 0.31)):
         p[pp.PARAM_INDEX[name]] = v
@@ -184,6 +183,28 @@ def test_rows_of_random_heights_have_their_mean_height():
     assert abs(lat.row_height - 35.25) <= 0.1 * 35.25, (lat.row_spacing, lat.row_height)
     first = L.match_tilings(lat)[0]
     assert first.tiling in (6, 7) and abs(first.resolution - lat.row_height) < 1e-9
+
+
+@pytest.mark.parametrize("tiling,res,aspect,rotation,white,larp,smooth,arity,jitter,shift", [
+    (7, 46.25, 0.8817, 1.1431, 0.6466, 0.5943, 0.3916, 3.0, 0.0338, (1.817, 4.985)),
+    (6, 48.25, 0.8457, 0.3654, 0.814, 0.8123, 0.9584, 4.0, 0.0668, (5.986, 6.886))])
+def test_ashlars_that_look_two_dimensional_are_rows(tiling, res, aspect, rotation, white, larp, smooth, arity,
+                                                   jitter, shift):
+    """Ashlars whose draw of heights happens to match across a few rows (bench targets 4 and 18) gave a 2-D
+    lattice whose point at the sum of the basis barely stands (0.3 and 0.5 ring deviations), which a fresh draw
+    does not repeat; the fits followed it (Gram ratios 2.75 and 4.33). They read as rows along the true rows
+    (within 3 degrees), the ashlars first among the matches."""
+    p = np.zeros(pp.N_PARAMS)
+    for name, v in {**L.CELL_TEMPLATE, "tiling": tiling, "resolution": res, "aspect_ratio": aspect,
+                    "rotation": rotation, "threshold": white, "window_larp": larp, "window_smoothness": smooth,
+                    "window_arity": arity, "jitter": jitter}.items():
+        p[pp.PARAM_INDEX[name]] = v
+    lat = L.analyse_lattice(pp.render_mask(p, 256, 256, shift=shift))
+    truth = L.layout_lattices(p)[0]
+    assert lat.kind == "rows" and truth.kind == "rows", (lat.kind, lat.vectors)
+    d = abs(lat.orientation_deg - truth.orientation_deg) % 180.0
+    assert min(d, 180.0 - d) <= 3.0, (lat.orientation_deg, truth.orientation_deg)
+    assert L.match_tilings(lat)[0].tiling in (6, 7)
 
 
 @pytest.mark.parametrize("tiling,res,aspect,rotation,shift,rounded", [(6, 35.0, 1.293, 0.778, (3.887, 7.116), True),
