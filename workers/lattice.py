@@ -473,8 +473,18 @@ def _describe_2d(ac: np.ndarray, prof: np.ndarray, b: np.ndarray, score: float, 
 POINT_Z = 1.0
 
 
+#: the short-point test applies to bases whose long vector is at least this many times the short one (the chance
+#: match of an ashlar's heights lies a few rows away; a noisy colour split of a brick wall has both vectors
+#: about one brick long and weak points that are still its lattice)
+POINT_TEST_ELONGATION = 2.0
+
+
 def _points_stand(ac: np.ndarray, prof: np.ndarray, b: np.ndarray) -> bool:
-    """Every short lattice point of the reduced basis b stands POINT_Z ring deviations above its ring mean."""
+    """Every short lattice point of the reduced basis b stands POINT_Z ring deviations above its ring mean (or
+    the basis is not elongated enough to be a chance match across rows: POINT_TEST_ELONGATION)."""
+    lengths = np.linalg.norm(b, axis=1)
+    if lengths.max() < POINT_TEST_ELONGATION * lengths.min():
+        return True
     pts = np.stack([b[0], b[1], b[0] + b[1], b[0] - b[1]])
     return bool(_heights(ac, prof, pts, z=True).min() >= POINT_Z)
 
