@@ -284,3 +284,53 @@ def test_real_structure_mask_keeps_its_lattice(bundled_index, name):
     lt, lo = L.analyse_lattice(target), L.analyse_lattice(out)
     assert lo.kind == "2d", lo
     assert abs(lo.period - lt.period) / lt.period <= 0.10, (lt.vectors, lo.vectors)
+
+
+def _split_herringbone():
+    """Bench target 23's parameters: a split 2:1 herringbone of 112 px, 2.3 periods across a 256 px mask."""
+    p = L.layout_params(L.LatticeMatch(11, 112.0, 1.6391, 0.2548, 0.0), 0.5721, larp=0.0703)
+    p[pp.PARAM_INDEX["jitter"]], p[pp.PARAM_INDEX["window_arity"]] = 0.0869, 5.0
+    p[pp.PARAM_INDEX["window_smoothness"]] = 0.6341
+    return p, pp.render_mask(p, 256, 256, shift=(3.97, 1.31))
+
+
+def test_lattice_gate_takes_a_split_family_by_its_placement():
+    """The lattice gate passes a family that splits its cells at random where its unsplit sibling (same placement,
+    same cell shape) shows the target's lattice: the crisp split-herringbone start of bench target 23 reads as no
+    lattice or a wrong one on the gate's shifts (the gate turned it and the window stage's split herringbones
+    away: Gram ratio 1.9), its sibling reads the target's. A square grid of another period still fails, and so
+    does the split grid on it."""
+    from workers.layout_fit import GATE_SHIFTS, _keeps_lattice, _shows_lattice
+
+    p, target = _split_herringbone()
+    lat = L.analyse_lattice(target)
+    assert lat.kind == "2d"
+    loss = GramMaskLoss(target, factor=loss_factor(256))
+    start = L.layout_params(L.LatticeMatch(11, 110.0, 1.66, 0.259, 0.0), lat.white_fraction)
+    assert not all(_shows_lattice(loss, lat, start, False, s) for s in GATE_SHIFTS)     # the old gate's check
+    assert _keeps_lattice(loss, lat, (0.0, False, start, "lattice"))
+    assert _keeps_lattice(loss, lat, (0.0, False, p, "truth"))
+    for tiling in (0, 1):
+        other = L.layout_params(L.LatticeMatch(tiling, 30.0, 1.0, 0.25, 0.0), lat.white_fraction)
+        assert not _keeps_lattice(loss, lat, (0.0, False, other, "grid"))
+
+
+def test_square_grid_matches_take_the_whole_pixel_side():
+    """A 35 x 28.2 px grid is matched at resolution 35 (a whole number of pixels, the other side exact), not
+    at 28 with the long side stretched: resolution is written as whole pixels, and at 28 the cells drift by a
+    quarter of a cell over the mask. With the same cell shape the VGG-19 Gram + layout loss of the two forms
+    differs by about half (bench target 0: 0.013 against 0.019)."""
+    p = L.layout_params(L.LatticeMatch(0, 35.0, 0.8054, 0.0819, 0.0), 0.555, larp=0.8133)
+    p[pp.PARAM_INDEX["jitter"]], p[pp.PARAM_INDEX["window_arity"]] = 0.0913, 5.0
+    p[pp.PARAM_INDEX["window_smoothness"]] = 0.6066
+    target = pp.render_mask(p, 256, 256, shift=(4.35, 7.48))
+    squares = [m for m in L.match_tilings(L.analyse_lattice(target)) if m.tiling in (0, 1) and not m.supercell]
+    assert squares and all(abs(m.resolution - 35.0) < 0.5 for m in squares), squares
+    other = np.array(p)
+    other[pp.PARAM_INDEX["resolution"]] = 28.25
+    other[pp.PARAM_INDEX["aspect_ratio"]] = 35.0 / 28.0
+    other[pp.PARAM_INDEX["rotation"]] = 0.5819
+    per, ang = L.compare_layouts(p, other)
+    assert per < 0.01 and ang < 0.5           # the same grid, written the other way round
+    loss = GramMaskLoss(target, factor=loss_factor(256))
+    assert loss(p) < 0.8 * loss(other)
