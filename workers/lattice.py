@@ -728,9 +728,8 @@ def _integer_period(m: LatticeMatch) -> LatticeMatch:
     """A square grid's match (QUARTER_TURN_SYMMETRIC) written the way round whose resolution is nearest a whole
     number of pixels: cells r x a*r turned by 90 degrees are cells a*r x r (resolution a*r, aspect 1/a, rotation
     + 1/2), and the period is written as whole pixels (``layout_params``) while the other side stays exact. On
-    bench target 0's
-    35.0 x 28.2 px grid, resolution 28 is 0.7 % short, which over the mask's nine periods moves the cells by a
-    quarter of one: VGG-19 Gram + layout loss 0.019 against 0.013 at resolution 35, same cell shape."""
+    bench target 0's 35.0 x 28.2 px grid, resolution 28 is 0.7 % short, which over the mask's nine periods moves
+    the cells by a quarter of one: VGG-19 Gram + layout loss 0.019 against 0.013 at resolution 35, same cell shape."""
     if m.tiling not in QUARTER_TURN_SYMMETRIC or _rounding(m.resolution * m.aspect) >= _rounding(m.resolution):
         return m
     return replace(m, resolution=m.resolution * m.aspect, aspect=1.0 / m.aspect, rotation=(m.rotation + 0.5) % 2.0)
