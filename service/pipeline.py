@@ -348,19 +348,29 @@ def stage_decompose(call: dict, resources: Any = None) -> dict:
 
 
 def stage_noise(call: dict, resources: Any = None) -> dict:
-    """Fit the multi-layer noise model of one (leaf, map) item; write its parameters as JSON."""
+    """Fit the multi-layer noise model of one (leaf, map) item; write its parameters as JSON. A kind of an
+    instance split is fitted on its within-piece residual, and the spread of its pieces' means is written beside
+    (``pieces``, workers.pieces)."""
     from workers import noise
+    from workers.pieces import kind_piece_labels, piece_residual
 
     leaf_id, map_name = call["item"].rsplit("/", 1)
     mdir = material_dir(call)
     mat = load_working_material(mdir)
-    leaf = _find(load_tree(mdir), leaf_id)
+    tree = load_tree(mdir)
+    leaf = _find(tree, leaf_id)
     image = mat.maps()[map_name]
-    cfg = _config(getattr(noise, "NoiseConfig", None), call["material"].get("noise", {}), "noise")
-    model = noise.fit_noise(image, leaf.mask, config=cfg) if cfg is not None else noise.fit_noise(image, leaf.mask)
-    params = _to_jsonable(model)
-    path = write_json(mdir / "noise" / f"{safe_name(leaf_id)}__{map_name}.json",
-                      {"leaf": leaf_id, "map": map_name, "params": params})
+    cfg = _config(noise.NoiseConfig, call["material"].get("noise", {}), "noise")
+    parent = _find(tree, tree_info(tree)["parents"][leaf_id]) if leaf_id != tree.id else None
+    doc: dict = {"leaf": leaf_id, "map": map_name}
+    if map_name in cfg.per_piece and parent is not None and parent.method == "instances" and \
+            "instance_labels" in parent.meta:
+        lab = kind_piece_labels(parent.meta["instance_labels"], parent.meta["instance_kinds"],
+                                [c.id for c in parent.children].index(leaf_id))
+        image, stats = piece_residual(image, lab, leaf.mask)
+        doc["pieces"] = stats.to_dict()
+    doc["params"] = _to_jsonable(noise.fit_noise(image, leaf.mask, config=cfg))
+    path = write_json(mdir / "noise" / f"{safe_name(leaf_id)}__{map_name}.json", doc)
     return {"files": [path], "info": {"leaf": leaf_id, "map": map_name}}
 
 
@@ -426,10 +436,12 @@ def stage_recompose(call: dict, resources: Any = None) -> dict:
     mdir = material_dir(call)
     mat = load_working_material(mdir)
     tree = load_tree(mdir)
-    noises = {}
+    noises, pieces = {}, {}
     for f in sorted((mdir / "noise").glob("*.json")) if (mdir / "noise").is_dir() else []:
         d = json.loads(f.read_text(encoding="utf-8"))
         noises[(d["leaf"], d["map"])] = d["params"]
+        if d.get("pieces"):
+            pieces[(d["leaf"], d["map"])] = d["pieces"]
     fits = {}
     for f in sorted((mdir / "masks").glob("*.json")) if (mdir / "masks").is_dir() else []:
         d = json.loads(f.read_text(encoding="utf-8"))
@@ -440,7 +452,7 @@ def stage_recompose(call: dict, resources: Any = None) -> dict:
 
         recomposer = Recomposer()
     proc, info = recomposer.run(mat, tree, noises, fits, options=call["material"].get("recompose", {}),
-                                seed=int(call["material"].get("seed", 0)))
+                                seed=int(call["material"].get("seed", 0)), pieces=pieces)
     path = graph.save(proc, mdir / "recompose" / "material.json")
     rep = write_json(mdir / "recompose" / "report.json", info)
     return {"files": [path, rep], "info": _to_jsonable(info)}

@@ -74,11 +74,14 @@ class Recomposer:
     def __init__(self, device: str = "cpu"):
         self.device = device
 
-    def build(self, material: Any, tree: Any, noises: dict, fits: dict, seed: int = 0) -> Any:
-        """The assembled (not yet optimised) ProceduralMaterial."""
+    def build(self, material: Any, tree: Any, noises: dict, fits: dict, seed: int = 0,
+              pieces: dict | None = None) -> Any:
+        """The assembled (not yet optimised) ProceduralMaterial; ``pieces`` ((leaf, map) -> workers.pieces
+        PieceStats dict) adds one offset per piece to those leaves of instance splits."""
         from workers import graph as G
         from workers import masks as MK
         from workers import noise as N
+        from workers.pieces import PieceStats, add_piece_offsets
         from workers.recompose import MAP_ORDER, assemble_material
 
         w, h = material.size
@@ -118,11 +121,19 @@ class Recomposer:
             if node.is_leaf:
                 return
             if node.method == "instances":
-                inst = MK.add_instances_node(proc, gid("inst", node.id), abs_mask(node, parent),
-                                             node.shares or [1.0 / len(node.children)] * len(node.children),
-                                             float(node.meta.get("separate", 0.0)))
+                cells, sep = abs_mask(node, parent), float(node.meta.get("separate", 0.0))
+                inst = MK.add_instances_node(proc, gid("inst", node.id), cells,
+                                             node.shares or [1.0 / len(node.children)] * len(node.children), sep)
+                labels = None
                 for i, c in enumerate(node.children):
                     mask_nodes[c.id] = proc.add(gid("mask", c.id), "channel", {"channels": [i]}, input=inst)
+                    for m, nid in leaf_nodes.get(c.id, {}).items():
+                        if (c.id, m) in (pieces or {}):
+                            if labels is None:
+                                labels = proc.add(gid("pieces", node.id), "piece_labels",
+                                                  {"separate": round(sep, 3)}, parent=cells)
+                            leaf_nodes[c.id][m] = add_piece_offsets(proc, gid("leaf", c.id, m), nid, labels,
+                                                                    PieceStats.from_dict(pieces[(c.id, m)]))
             else:
                 fitted: list[str] = []
                 remainder: str | None = None
@@ -145,12 +156,12 @@ class Recomposer:
                                  tilt=tuple(material.normal_tilt))
 
     def run(self, material: Any, tree: Any, noises: dict, fits: dict, options: dict | None = None,
-            seed: int = 0) -> tuple[Any, dict]:
+            seed: int = 0, pieces: dict | None = None) -> tuple[Any, dict]:
         """(optimised ProceduralMaterial, report with loss before/after) via ``workers.recompose``."""
         from workers.recompose import RecomposeConfig, optimise
 
         t0 = time.perf_counter()
-        proc = self.build(material, tree, noises, fits, seed)
+        proc = self.build(material, tree, noises, fits, seed, pieces)
         opts = dict(options or {})
         if int(opts.get("iterations", 1)) == 0:
             return proc, {"device": self.device, "iterations": 0, "seconds": time.perf_counter() - t0}

@@ -149,7 +149,7 @@ def _ensure_builtin_types_loaded() -> None:
     """Import stage modules that register node types (kept lazy to avoid import cycles)."""
     import importlib
 
-    for mod in ("workers.noise", "workers.masks"):
+    for mod in ("workers.noise", "workers.masks", "workers.pieces"):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -42,7 +42,7 @@ from pptbf_db import pptbf as pp
 
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
-from .instances import nearest_labels, separate_cells
+from .instances import piece_labels
 from .mask_opt import Budget, OptSettings, explore, optimise
 
 if TYPE_CHECKING:
@@ -601,12 +601,10 @@ def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: fl
     with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece."""
     m = _check_mask(parent_mask, "parent_mask")
     p = _check_shares(shares)
-    lab, n = _components(separate_cells(m, separate) if separate > 0 else m)
+    lab = piece_labels(m, separate)
+    n = int(lab.max())
     draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
-    table = np.concatenate([[-1], draws]).astype(np.int64)
-    if separate > 0 and n:   # the cut lines take the kind of the nearest piece
-        return np.where(m, table[nearest_labels(lab)], -1)
-    return table[lab]
+    return np.concatenate([[-1], draws]).astype(np.int64)[lab]
 
 
 def instance_shares(labels: np.ndarray, n_clusters: int) -> np.ndarray:

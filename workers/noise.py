@@ -59,9 +59,14 @@ class NoiseConfig:
     n_gabor: int = 16                     # Gabor kernels per PCA component of the last layer
     n_quantiles: int = 64                 # stored quantiles per channel for histogram matching
     seed: int = 0                         # window subsampling seed (fitting is deterministic)
+    per_piece: tuple[str, ...] = ("height",)  # maps whose instance kinds get one offset per piece at render
+    #                                       time, their noise fitted on the within-piece residual (workers.pieces):
+    #                                       bricks set at different depths give the normals their steps at the
+    #                                       brick edges; on albedo and roughness it measured worse (see pieces.py)
 
     def __post_init__(self) -> None:
         self.kernel_sizes = tuple(int(k) for k in self.kernel_sizes)
+        self.per_piece = (self.per_piece,) if isinstance(self.per_piece, str) else tuple(self.per_piece)
         if not 0 <= self.n_levels <= len(self.kernel_sizes):
             raise InputError(f"NoiseConfig.n_levels={self.n_levels} must be in [0, {len(self.kernel_sizes)}]")
         if self.window < self.min_window or self.min_window < 2 or self.step < 1:

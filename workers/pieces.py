@@ -1,0 +1,144 @@
+"""Per-piece variation of an instance kind (bricks, tiles, slates): one random offset per piece.
+
+The bricks of one kind differ from each other by a shade each (a brick is darker or redder as a whole), and
+inside a brick the texture varies smoothly. Fitting the kind's stationary noise on all its pixels mixes the
+two: the between-piece steps become low-frequency blotches that run across bricks and the pieces' edges add
+grain (castle_brick_broken_06 at 512 px: whitish and dark blobs wider than a brick in the kind's albedo).
+So a kind's noise is fitted on the *within-piece residual* (each piece's mean replaced by the kind's mean,
+:func:`piece_residual`) and the spread of the pieces' means is kept as a covariance (:class:`PieceStats`, with
+the sampling noise of small pieces' means taken out). At render time, ``piece_labels`` numbers the pieces of the
+procedural cells (the same neck cut and components as the ``instances`` node, so the same partition) and
+``piece_offsets`` draws one N(0, cov) offset per piece from its node seed; the leaf is noise + offsets.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import GraphError, InputError
+from .graph import EvalContext, ProceduralMaterial, register_node
+from .instances import piece_labels
+
+MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
+
+
+@dataclass
+class PieceStats:
+    """Spread of the pieces' means of one kind: ``cov`` (C x C, between-piece covariance), ``pieces`` counted."""
+
+    cov: np.ndarray
+    pieces: int
+
+    def to_dict(self) -> dict:
+        return {"cov": np.round(np.asarray(self.cov, np.float64), 8).tolist(), "pieces": int(self.pieces)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PieceStats":
+        return cls(cov=np.asarray(d["cov"], np.float64), pieces=int(d.get("pieces", 0)))
+
+
+def _psd(cov: np.ndarray) -> np.ndarray:
+    """The nearest positive semi-definite matrix (negative eigenvalues set to zero)."""
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    return (v * np.clip(w, 0.0, None)) @ v.T
+
+
+def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, PieceStats]:
+    """(residual HxWxC, stats): ``image`` with every piece's mean (pixels of ``mask`` with the same label > 0)
+    replaced by the mean over ``mask``, and the between-piece covariance of those means. The covariance of the
+    means over-states the between-piece spread by the pooled within-piece covariance / piece size (a small
+    piece's mean is itself noisy); that part is subtracted, and the result clipped to be semi-definite."""
+    img = np.asarray(image, np.float32)
+    img3 = img[..., None] if img.ndim == 2 else img
+    m = np.asarray(mask, bool) & (np.asarray(labels) > 0)
+    if img3.shape[:2] != m.shape:
+        raise InputError(f"pieces: image {img3.shape[:2]} and labels {m.shape} differ in size")
+    c = img3.shape[2]
+    lab = np.where(m, labels, 0).astype(np.int64)
+    ids, counts = np.unique(lab[m], return_counts=True)
+    if ids.size < MIN_PIECES:
+        return img.copy(), PieceStats(np.zeros((c, c)), int(ids.size))
+    sums = np.stack([ndimage.sum(img3[..., k], lab, ids) for k in range(c)], axis=1)
+    means = sums / counts[:, None]
+    kind_mean = sums.sum(0) / counts.sum()
+    table = np.zeros((int(lab.max()) + 1, c), np.float32)
+    table[ids] = means - kind_mean
+    res = img3 - np.where(m[..., None], table[lab], 0.0)
+    dev = (img3 - table[lab] - kind_mean)[m]                      # within-piece deviations
+    within = dev.T @ dev / max(1, dev.shape[0] - ids.size)
+    cov = np.atleast_2d(np.cov(means.T)) - within * float(np.mean(1.0 / counts))
+    out = res.astype(np.float32)
+    return (out[..., 0] if img.ndim == 2 else out), PieceStats(_psd(cov), int(ids.size))
+
+
+@register_node
+class PieceLabelsNode:
+    """Piece numbers (HxWx1 float, 0 outside, 1..n) of input ``parent`` (a cell mask), cut at its necks with
+    ``separate`` working-size px (follows the scale), as the ``instances`` node over the same parent."""
+
+    name = "piece_labels"
+    inputs = ("parent",)
+
+    def validate(self, params: dict) -> None:
+        sep = params.get("separate", 0.0)
+        if not isinstance(sep, (int, float)) or isinstance(sep, bool) or not math.isfinite(sep) or not 0 <= sep <= 1e4:
+            raise GraphError("piece_labels.separate must be a number of pixels in 0..10000 (0 = components only)")
+
+    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
+        if "parent" not in inputs:
+            raise GraphError(f"piece_labels node {node_id} needs input 'parent'")
+        sep = float(params.get("separate", 0.0)) * ctx.px_scale
+        return piece_labels(inputs["parent"][..., 0] > 0.5, sep).astype(np.float32)[..., None]
+
+
+@register_node
+class PieceOffsetsNode:
+    """One offset per piece of input ``labels`` (a ``piece_labels`` node), drawn from N(0, ``cov``) with the node's
+    seed: HxWxC (C = the size of cov), zero outside the pieces."""
+
+    name = "piece_offsets"
+    inputs = ("labels",)
+
+    def validate(self, params: dict) -> None:
+        cov = params.get("cov")
+        try:
+            a = np.asarray(cov, np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.ndim != 2 or a.shape[0] != a.shape[1] or not 1 <= a.shape[0] <= 4 or \
+                not np.all(np.isfinite(a)) or np.any(np.diag(a) < 0):
+            raise GraphError("piece_offsets.cov must be a square list of lists (1x1 to 4x4) of finite numbers with "
+                             "a non-negative diagonal")
+
+    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
+        if "labels" not in inputs:
+            raise GraphError(f"piece_offsets node {node_id} needs input 'labels'")
+        lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
+        cov = _psd(np.asarray(params["cov"], np.float64))
+        n = int(lab.max()) if lab.size else 0
+        w, v = np.linalg.eigh(cov)
+        z = ctx.rng(node_id).standard_normal((n + 1, cov.shape[0]))
+        table = (z * np.sqrt(np.clip(w, 0.0, None))) @ v.T
+        table[0] = 0.0
+        return table[lab].astype(np.float32)
+
+
+def kind_piece_labels(labels: np.ndarray, kinds, kind: int) -> np.ndarray:
+    """The pieces of kind ``kind`` (HxW int, 0 elsewhere) from an instance split's labels (1..N, 0 = no kept
+    piece) and kinds (kind of piece i+1): gaps join the nearest piece, as the kind masks do
+    (``workers.instances.split_instances``)."""
+    from .instances import nearest_labels
+
+    lab = np.asarray(labels, np.int64)
+    k = np.concatenate([[-1], np.asarray(kinds, np.int64)])
+    near = nearest_labels(lab) if (lab == 0).any() and lab.max() > 0 else lab
+    return np.where(k[near] == int(kind), near, 0)
+
+
+def add_piece_offsets(mat: ProceduralMaterial, node_id: str, leaf: str, labels: str, stats: PieceStats) -> str:
+    """Add ``piece_offsets`` over ``labels`` and an ``add`` of it to node ``leaf``; returns the add node's id."""
+    off = mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": stats.to_dict()["cov"]}, labels=labels)
+    return mat.add(node_id, "add", {}, in0=leaf, in1=off)
