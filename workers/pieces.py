@@ -9,6 +9,13 @@ So a kind's noise is fitted on the *within-piece residual* (each piece's mean re
 the sampling noise of small pieces' means taken out). At render time, ``piece_labels`` numbers the pieces of the
 procedural cells (the same neck cut and components as the ``instances`` node, so the same partition) and
 ``piece_offsets`` draws one N(0, cov) offset per piece from its node seed; the leaf is noise + offsets.
+
+Measured on castle_brick_broken_06 at 512 px (VGG-19 Gram distance in units of the input's half-to-half
+distance, after recomposition): on the height it moves the normals from 3.62 to 3.02 (the bricks' steps at their
+edges) with the height itself unchanged (2.85); on the albedo 3.69 -> 4.89 and the roughness 3.12 -> 3.43 (a
+Gaussian draw of a kind's shades gives bricks darker and brighter than any in the input, and the residual's
+noise loses the low-frequency part the recomposition matched), so ``NoiseConfig.per_piece`` defaults to the
+height only.
 """
 from __future__ import annotations
 
