@@ -43,6 +43,7 @@ from pptbf_db import pptbf as pp
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
 from .instances import piece_labels
+from .pieces import cell_pieces
 from .mask_opt import Budget, OptSettings, explore, optimise
 
 if TYPE_CHECKING:
@@ -594,14 +595,16 @@ def _check_shares(shares) -> np.ndarray:
     return s / s.sum()
 
 
-def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: float = 0.0) -> np.ndarray:
+def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: float = 0.0,
+                     labels: np.ndarray | None = None) -> np.ndarray:
     """Cluster labels (HxW int, -1 outside the parent): each connected component draws a cluster from `shares`.
     ``separate`` > 0 first cuts the parent at its necks (``workers.instances.separate_cells``, markers that many
     px apart), as the decomposition cut the input's cells before it measured their kinds: an outline network
-    with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece."""
+    with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece. ``labels``:
+    those pieces when already numbered (``workers.pieces.cell_pieces``)."""
     m = _check_mask(parent_mask, "parent_mask")
     p = _check_shares(shares)
-    lab = piece_labels(m, separate)
+    lab = piece_labels(m, separate) if labels is None else labels
     n = int(lab.max())
     draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
     return np.concatenate([[-1], draws]).astype(np.int64)[lab]
@@ -693,7 +696,8 @@ class InstancesNode:
             raise GraphError(f"instances node {node_id} needs input 'parent'")
         k = len(params["shares"])
         sep = float(params.get("separate", 0.0)) * ctx.px_scale
-        labels = sample_instances(inputs["parent"][..., 0] > 0.5, params["shares"], ctx.rng(node_id), sep)
+        labels = sample_instances(inputs["parent"][..., 0] > 0.5, params["shares"], ctx.rng(node_id), sep,
+                                  labels=cell_pieces(ctx, inputs["parent"], sep))
         out = np.zeros((ctx.height, ctx.width, k), dtype=np.float32)
         hh, ww = np.nonzero(labels >= 0)
         out[hh, ww, labels[hh, ww]] = 1.0
