@@ -282,6 +282,31 @@ def test_determinism_and_config_errors():
         optimise(proc, {"height": target["height"]})
 
 
+def test_loss_size_follows_the_maps_and_maps_enter_as_seen():
+    """The loss looks at half the maps' longer side (at least 128 px; 0 = full size; a number = that size), so a
+    512 px material is judged at 256 px, where its noise's 3-6 px grain still shows; with ``as_seen`` the albedo
+    enters through the sRGB curve and the height by the target's range, as workers.evaluate shows them."""
+    from workers.evaluate import vgg_image
+
+    proc = _white_material(32)
+    target = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in G.evaluate(proc, 32, 32, seed=4).items()}
+    sizes = {}
+    for ls in (None, 0, 64):
+        loss = RecomposeLoss(target, RecomposeConfig(loss_size=ls, features="random", light_pool=2), torch.device("cpu"))
+        sizes[ls] = [tuple(loss._small(torch.zeros(1, 1, n, n // 2)).shape[-2:]) for n in (512, 200, 96)]
+    assert sizes[None] == [(256, 128), (128, 64), (96, 48)]
+    assert sizes[0] == [(512, 256), (200, 100), (96, 48)] and sizes[64] == [(64, 32), (64, 32), (64, 32)]
+    loss = RecomposeLoss(target, RecomposeConfig(loss_size=0, features="random", light_pool=2), torch.device("cpu"))
+    h = target["height"].numpy()
+    for m in ("albedo", "height"):
+        mine = loss._img(m, target[m])[0].permute(1, 2, 0).numpy()
+        ref = vgg_image(m, target[m].numpy(), (float(h.min()), float(h.max())) if m == "height" else None)
+        assert np.abs(mine - ref).max() < 1e-3, m
+    raw = RecomposeLoss(target, RecomposeConfig(loss_size=0, features="random", light_pool=2, as_seen=False),
+                        torch.device("cpu"))
+    assert torch.equal(raw._img("albedo", target["albedo"])[0].permute(1, 2, 0), target["albedo"])
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     proc = _white_material(48)
