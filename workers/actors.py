@@ -84,6 +84,7 @@ class Recomposer:
         from workers.pieces import PieceStats, add_piece_offsets
         from workers.recompose import MAP_ORDER, assemble_material
 
+        pieces = pieces or {}
         w, h = material.size
         orig = material.meta.get("original_size")
         proc = G.new_material(seed=seed, working_size=(w, h), input_size=tuple(orig) if orig else None)
@@ -124,16 +125,15 @@ class Recomposer:
                 cells, sep = abs_mask(node, parent), float(node.meta.get("separate", 0.0))
                 inst = MK.add_instances_node(proc, gid("inst", node.id), cells,
                                              node.shares or [1.0 / len(node.children)] * len(node.children), sep)
-                labels = None
                 for i, c in enumerate(node.children):
                     mask_nodes[c.id] = proc.add(gid("mask", c.id), "channel", {"channels": [i]}, input=inst)
-                    for m, nid in leaf_nodes.get(c.id, {}).items():
-                        if (c.id, m) in (pieces or {}):
-                            if labels is None:
-                                labels = proc.add(gid("pieces", node.id), "piece_labels",
-                                                  {"separate": round(sep, 3)}, parent=cells)
-                            leaf_nodes[c.id][m] = add_piece_offsets(proc, gid("leaf", c.id, m), nid, labels,
-                                                                    PieceStats.from_dict(pieces[(c.id, m)]))
+                varied = [(c.id, m) for c in node.children for m in leaf_nodes.get(c.id, {}) if (c.id, m) in pieces]
+                if varied:   # one numbering of the pieces, one offset draw per (kind, map)
+                    labels = proc.add(gid("pieces", node.id), "piece_labels", {"separate": round(sep, 3)},
+                                      parent=cells)
+                    for cid, m in varied:
+                        leaf_nodes[cid][m] = add_piece_offsets(proc, gid("leaf", cid, m), leaf_nodes[cid][m], labels,
+                                                               PieceStats.from_dict(pieces[(cid, m)]))
             else:
                 fitted: list[str] = []
                 remainder: str | None = None

@@ -27,7 +27,7 @@ from scipy import ndimage
 
 from .errors import GraphError, InputError
 from .graph import EvalContext, ProceduralMaterial, register_node
-from .instances import piece_labels
+from .instances import nearest_labels, piece_labels
 
 MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
 
@@ -47,10 +47,16 @@ class PieceStats:
         return cls(cov=np.asarray(d["cov"], np.float64), pieces=int(d.get("pieces", 0)))
 
 
+def _root(cov: np.ndarray) -> np.ndarray:
+    """F with F @ F.T the nearest positive semi-definite matrix to ``cov`` (negative eigenvalues set to zero)."""
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    return v * np.sqrt(np.clip(w, 0.0, None))
+
+
 def _psd(cov: np.ndarray) -> np.ndarray:
     """The nearest positive semi-definite matrix (negative eigenvalues set to zero)."""
-    w, v = np.linalg.eigh((cov + cov.T) / 2)
-    return (v * np.clip(w, 0.0, None)) @ v.T
+    f = _root(cov)
+    return f @ f.T
 
 
 def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, PieceStats]:
@@ -71,10 +77,10 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> t
     sums = np.stack([ndimage.sum(img3[..., k], lab, ids) for k in range(c)], axis=1)
     means = sums / counts[:, None]
     kind_mean = sums.sum(0) / counts.sum()
-    table = np.zeros((int(lab.max()) + 1, c), np.float32)
+    table = np.zeros((int(lab.max()) + 1, c))
     table[ids] = means - kind_mean
-    res = img3 - np.where(m[..., None], table[lab], 0.0)
-    dev = (img3 - table[lab] - kind_mean)[m]                      # within-piece deviations
+    res = img3 - table[lab]                                       # label 0 (outside) subtracts nothing
+    dev = (res - kind_mean)[m]                                    # within-piece deviations
     within = dev.T @ dev / max(1, dev.shape[0] - ids.size)
     cov = np.atleast_2d(np.cov(means.T)) - within * float(np.mean(1.0 / counts))
     out = res.astype(np.float32)
@@ -134,11 +140,9 @@ class PieceOffsetsNode:
         if "labels" not in inputs:
             raise GraphError(f"piece_offsets node {node_id} needs input 'labels'")
         lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
-        cov = _psd(np.asarray(params["cov"], np.float64))
+        f = _root(np.asarray(params["cov"], np.float64))
         n = int(lab.max()) if lab.size else 0
-        w, v = np.linalg.eigh(cov)
-        z = ctx.rng(node_id).standard_normal((n + 1, cov.shape[0]))
-        table = (z * np.sqrt(np.clip(w, 0.0, None))) @ v.T
+        table = ctx.rng(node_id).standard_normal((n + 1, f.shape[0])) @ f.T
         table[0] = 0.0
         return table[lab].astype(np.float32)
 
@@ -147,8 +151,6 @@ def kind_piece_labels(labels: np.ndarray, kinds, kind: int) -> np.ndarray:
     """The pieces of kind ``kind`` (HxW int, 0 elsewhere) from an instance split's labels (1..N, 0 = no kept
     piece) and kinds (kind of piece i+1): gaps join the nearest piece, as the kind masks do
     (``workers.instances.split_instances``)."""
-    from .instances import nearest_labels
-
     lab = np.asarray(labels, np.int64)
     k = np.concatenate([[-1], np.asarray(kinds, np.int64)])
     near = nearest_labels(lab) if (lab == 0).any() and lab.max() > 0 else lab
