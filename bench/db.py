@@ -55,7 +55,8 @@ def bench_speedup(n: int, res: int, chunk: int) -> None:
     """Same build with 1 and 2 tasks in flight on one local Ray (2 CPUs)."""
     import ray
 
-    from pptbf_db.build import BuildConfig, build_database
+    from pptbf_db.build import BuildConfig
+    from service.db_build import build_database
 
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="WARNING")
@@ -103,12 +104,12 @@ def bench_quality(folder: Path, probes: int, dims: list[int]) -> None:
     """Retrieval of an entry's own parameters from a new realisation (shifted render), per PCA dimension."""
     import json
 
-    from pptbf_db.build import _raw_path
+    from pptbf_db.build import raw_path
 
     meta = json.loads((folder / "meta.json").read_text())
     res, n_chunks = meta["resolution"], meta["chunks"]
     cfg = DescriptorConfig.from_dict(meta["descriptor"])
-    raw = np.concatenate([np.load(_raw_path(folder, c)) for c in range(n_chunks)])
+    raw = np.concatenate([np.load(raw_path(folder, c)) for c in range(n_chunks)])
     params = np.load(folder / "params.npy")
     white = np.load(folder / "white.npy")
     ok = (white > 0.01) & (white < 0.99)

@@ -19,7 +19,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from workers import graph, lattice as L  # noqa: E402
+from workers import graph  # noqa: E402
+from workers import lattice as L  # noqa: E402
 from workers.maps import linear_to_srgb, read_image, write_image  # noqa: E402
 
 

@@ -128,7 +128,8 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
     fams = [int(f) for f in args.families.split(",")] if args.families else FAMILIES
     rows = []
     print(f"{'#':>3} {'tiling':>6} {'res':>4} {'asp':>5} {'rot':>5} | {'fit t':>5} {'res':>4} {'asp':>5} "
-          f"{'rot':>5} | {'per%':>5} {'ang':>5} {'tru':>3} {'lay':>3} {'fam':>3} | {'fit':>6} {'floor':>6} {'ratio':>5} {'r+lay':>5} | "
+          f"{'rot':>5} | {'per%':>5} {'ang':>5} {'tru':>3} {'lay':>3} {'fam':>3} | "
+          f"{'fit':>6} {'floor':>6} {'ratio':>5} {'r+lay':>5} | "
           f"{'s':>4} kind")
     for k in range(args.n):
         t = fams[k % len(fams)]
@@ -147,7 +148,8 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
         rows.append(row)
         print(f"{k:>3} {t:>6} {int(p[3]):>4} {p[5]:>5.2f} {p[4]:>5.2f} | {int(fit.params[1]):>5} "
               f"{int(fit.params[3]):>4} {fit.params[5]:>5.2f} {fit.params[4]:>5.2f} | {100 * per:>5.1f} "
-              f"{ang:>5.1f} {'y' if truth_ok else 'n':>3} {'y' if layout_ok else 'n':>3} {'y' if row['family'] else 'n':>3} | {d_fit:>6.4f} {d_true:>6.4f} "
+              f"{ang:>5.1f} {'y' if truth_ok else 'n':>3} {'y' if layout_ok else 'n':>3} "
+              f"{'y' if row['family'] else 'n':>3} | {d_fit:>6.4f} {d_true:>6.4f} "
               f"{row['ratio']:>5.2f} {row['ratio_loss']:>5.2f} | {secs:>4.0f} {row['method']} ({lt.kind})", flush=True)
         if panels:
             _panel(panels / f"synthetic_{k:02d}_t{t}.png", [target, out])

@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pptbf_db import pptbf as pp
-from workers.masks import (MaskFitConfig, MaskLoss, best_shift_iou, downsample_mask, fit_pptbf_mask,
-                           realisation_distance)
+from workers.masks import MaskFitConfig, MaskLoss, best_shift_iou, downsample_mask, fit_pptbf_mask, realisation_distance
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -43,11 +42,12 @@ def load_index(db: str | None, tiny: int, tiny_res: int = 64):
         return PPTBFIndex.load(path), str(path)
     from pptbf_db.build import render_and_describe
     from pptbf_db.descriptor import DescriptorConfig, fit_pca
+    from workers.lattice import analyse_lattice
 
     cfg = DescriptorConfig(dim=64)
     params = pp.sample_params(np.random.default_rng(0), tiny, ref_width=tiny_res)
     t0 = time.perf_counter()
-    raw, white, _ = render_and_describe(params, tiny_res, cfg)
+    raw, white, _ = render_and_describe(params, tiny_res, cfg, analyse_lattice)
     pca = fit_pca(raw, cfg)
     print(f"# tiny in-memory database: {tiny} entries at {tiny_res} px built in {time.perf_counter() - t0:.1f} s")
     return PPTBFIndex(params, pca.transform(raw), pca, cfg, tiny_res, white), f"in-memory {tiny}@{tiny_res}"

@@ -53,13 +53,15 @@ def main(argv=None) -> None:
 
         pp.evaluate_torch(torch.tensor(pp.sample_params(rng, 1)[0]), 64, device=args.device)  # warm-up
     threads = pp.default_threads() if args.threads is None else args.threads
-    print(f"{'family':<10} " + " ".join(f"{c:>11}" for c in cols) + f"   (median seconds, numpy on {threads} thread(s))")
+    print(f"{'family':<10} " + " ".join(f"{c:>11}" for c in cols)
+          + f"   (median seconds, numpy on {threads} thread(s))")
     for fam, types in pp.TILING_FAMILIES.items():
         params = pp.sample_params(rng, args.n, ref_width=128)
         params[:, 1] = rng.choice(types, size=args.n)
         row = []
         for s in args.sizes:
-            row.append(np.median([_time(lambda p=p: pp.evaluate(p, s, ref_width=128, threads=args.threads)) for p in params]))
+            row.append(np.median([_time(lambda p=p: pp.evaluate(p, s, ref_width=128, threads=args.threads))
+                                  for p in params]))
         if args.torch_size:
             import torch
 

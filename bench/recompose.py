@@ -25,7 +25,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from workers import graph as G  # noqa: E402
-from workers.recompose import RecomposeConfig, assemble_material, optimise  # noqa: E402
+from workers.assemble import assemble_material  # noqa: E402
+from workers.recompose import RecomposeConfig, optimise  # noqa: E402
 from workers.tree import MaskNode, root_node  # noqa: E402
 
 
@@ -45,7 +46,6 @@ def load_target(args) -> dict:
 
 def build(target: dict, size: int, leaves: int, seed: int = 0) -> G.ProceduralMaterial:
     """Material with ``leaves`` leaves: PPTBF masks carve the root, the last leaf is what is left."""
-    import workers.masks  # noqa: F401
     from pptbf_db import pptbf as pp
     from workers.noise import fit_noise, noise_params
 

@@ -1,10 +1,10 @@
-"""Speed and memory per pipeline stage (issue 9 part 2): one material run in-process, or a batch job's store.
+"""Speed and memory per pipeline stage: one material run in-process, or a batch job's store.
 
     python bench/speed.py one examples/quick.toml                      # first material, stages in this process
     python bench/speed.py one examples/quick.toml --working-size 256 --isolate
     python bench/speed.py batch /tmp/job_small                         # per-stage times recorded by a Ray job
 
-``one`` runs every stage item of one material through ``service.pipeline.run_stage`` (no Ray) into a scratch
+``one`` runs every stage item of one material through ``service.stages.run_stage`` (no Ray) into a scratch
 folder and reports per stage: items, seconds, the peak of the Python/numpy heap (tracemalloc; torch tensors
 are not counted) and the process's resident-set high-water mark (ru_maxrss) after the stage. ru_maxrss only
 grows, so in-process it shows the highest stage so far; ``--isolate`` runs each item in a fresh process and
@@ -34,11 +34,11 @@ MIB = 1024.0 * 1024.0
 # imported before any clock starts (lazy imports inside the stages would otherwise be timed, slowed by tracemalloc)
 WARM_MODULES = ("torch", "workers.maps", "workers.graph", "workers.render", "workers.tree", "workers.decompose",
                 "workers.noise", "workers.masks", "workers.recompose", "workers.actors", "pptbf_db.index",
-                "service.pipeline")
+                "service.pipeline", "service.stages")
 
 
 def _print_table(rows: list[tuple], header: tuple) -> None:
-    from service.cli import _print_table as pt
+    from service.commands.common import print_table as pt
 
     pt(rows, header)
 
@@ -61,11 +61,11 @@ def warm_imports() -> float:
     return _maxrss_mib()
 
 
-def measure_item(call: dict) -> dict:
+def measure_item(call) -> dict:
     """Run one stage item; its seconds, tracemalloc peak and the RSS high-water mark after it (MiB).
 
     Modules are imported before the clock starts, so a fresh process times the work, not imports."""
-    from service.pipeline import run_stage
+    from service.stages import run_stage
 
     warm_imports()
     tracemalloc.start()
@@ -81,25 +81,10 @@ def measure_item(call: dict) -> dict:
     return {"seconds": seconds, "py_peak": peak, "rss": _maxrss_mib(), "gpu": gpu, "info": res["info"]}
 
 
-def _items(stage: str, material: dict, infos: dict) -> list[str]:
-    """Work items of a stage, planned as the scheduler plans them."""
-    from service.pipeline import NOISE_MAPS, output_renders
-
-    if stage == "noise":
-        return [f"{leaf}/{m}" for leaf in infos["decompose"]["leaves"] for m in NOISE_MAPS
-                if m in infos["load"]["maps"]]
-    if stage == "masks":
-        return list(infos["decompose"]["fit_masks"])
-    if stage == "output":
-        return output_renders(material)
-    return [""]
-
-
 def run_one(args) -> int:
     """Run the stages of one material of a manifest and print the per-stage table."""
     from service.manifest import load_manifest
-    from service.pipeline import STAGES, StageCall
-
+    from service.stages import STAGES, StageCall
     from workers.errors import InputError
 
     man = load_manifest(args.manifest)
@@ -111,7 +96,6 @@ def run_one(args) -> int:
         spec.working_size = (args.working_size, args.working_size)
     out = Path(args.out or tempfile.mkdtemp(prefix="speed_"))
     shutil.rmtree(out / spec.output, ignore_errors=True)
-    material = spec.to_json()
     pool = None
     if args.isolate:
         ctx = mp.get_context("spawn")
@@ -120,10 +104,11 @@ def run_one(args) -> int:
     try:
         if pool is not None:
             rows.append(("baseline (imports)", "", "", "", "", f"{pool.submit(warm_imports).result():.0f}"))
-        for stage in STAGES:
+        for st in STAGES:  # items planned as the scheduler plans them
+            stage = st.name
             res = []
-            for item in _items(stage, material, infos):
-                call = StageCall(job="speed", root=str(out), material=material, stage=stage, item=item).to_dict()
+            for item in st.items(spec, lambda s: infos.get(s, {})):
+                call = StageCall(job="speed", root=str(out), spec=spec, stage=stage, item=item)
                 res.append(pool.submit(measure_item, call).result() if pool else measure_item(call))
             infos[stage] = res[0]["info"] if res else {}
             secs = sum(r["seconds"] for r in res)
@@ -147,9 +132,9 @@ def run_one(args) -> int:
 
 def run_batch(args) -> int:
     """Per-stage and per-material times of a finished job, from its SQLite store."""
-    from service.cli import _open_job
+    from service.commands.jobs import open_job
 
-    store, job = _open_job(args.job)
+    store, job = open_job(args.job)
     try:
         items = store.items(job)
         mats = store.materials(job)
@@ -194,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     batch.add_argument("job", help="job name, manifest, output folder or database file")
     batch.set_defaults(func=run_batch)
     args = p.parse_args(argv)
-    from workers.errors import ProceduralizeError
+    from pptbf_db.errors import ProceduralizeError
 
     try:
         return args.func(args)

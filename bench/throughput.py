@@ -37,9 +37,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
+from service.stages import STAGE_NAMES  # noqa: E402
 from tests.conftest import REAL_MATERIALS, SHARED_MATERIALS, real_material_files  # noqa: E402
 
-STAGE_ORDER = ["load", "decompose", "noise", "masks", "recompose", "output"]
+STAGE_ORDER = list(STAGE_NAMES)
 
 
 def job_doc(n: int, working_size: int, iterations: int, out_size: int, decompose: str = "auto",

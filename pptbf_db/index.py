@@ -1,12 +1,12 @@
 """PPTBF database storage and exact nearest-neighbour query on reduced descriptors.
 
-A database folder (written by `pptbf_db.build`) holds:
+A database folder (written by `pptbf_db.build`, the build driven by `service.db_build`) holds:
   meta.json     {"format": "proceduralize-pptbf-db/1", "size", "resolution", "seed", "descriptor", "dim", ...}
   params.npy    (N, 29) float64 parameter vectors
   reduced.npy   (N, d) float32 (or float16) PCA-reduced descriptors
   pca.npz       mean, scales, components, explained (no pickles)
   white.npy     (N,) float32 white fraction of each entry's mask
-  db.sqlite     chunk status of the build and per-entry metadata
+  db.sqlite     chunk status of the build and per-entry metadata (service.db_build's bookkeeping)
   raw_XXXX.npy  raw descriptor chunks (optional, may be deleted after the PCA)
 """
 from __future__ import annotations
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from pptbf_db.descriptor import DEFAULT_EXTRACTOR, DescriptorConfig, PCAModel, describe_masks
+from pptbf_db.errors import DatabaseError
 from pptbf_db.pptbf import GENERATOR
-from workers.errors import DatabaseError
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,7 @@
 """PPTBF (Point Process Texture Basis Functions, Guehl et al. 2020): parameter space and vectorised numpy evaluation.
 
-Re-derived from /work/shared/SPEC-pptbf.md (no reference code copied); the numeric tables are in tables.py.
+Re-derived from the project spec SPEC-pptbf.md (in ../shared beside the repository; no reference code copied);
+the numeric tables are in tables.py.
 The evaluation is split in two parts so that the torch version (pptbf_torch.py) can share the discrete work:
 
 * the *structure* (numpy, float64, not differentiable): domain coordinates -> tiles -> (relaxed) point sets ->
@@ -31,8 +32,8 @@ import logging
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from functools import partial
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from scipy.spatial import cKDTree

@@ -3,7 +3,7 @@
 PERM (mP) and NOISE (mRndTab) come from ASTex-ICube/semiproctex
 `PPTBF_Structures_Src/PtModel/PtNoise.cpp`; the APAVEMENT neighbour tables from the shader function
 `PP_pavec` in `pptbf_megakernel_v2_comp.glsl` (same repository). Only numbers are transcribed here; the
-algorithm is re-derived in pptbf_db/pptbf.py from /work/shared/SPEC-pptbf.md.
+algorithm is re-derived in pptbf_db/pptbf.py from the project spec SPEC-pptbf.md (beside the repository, in ../shared).
 """
 from __future__ import annotations
 

@@ -24,6 +24,7 @@ Map files are *not* required to exist here: a missing file fails only its materi
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import hashlib
 import json
@@ -33,12 +34,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+import nlopt
+import yaml
+
+from pptbf_db.errors import ProceduralizeError
+from service.placement import DEVICES
+from service.stages import STAGE_NAMES, STAGES, Stage
 from workers import budget
-from workers.errors import ManifestError, ProceduralizeError
+from workers.decompose import validate_spec
+from workers.errors import ManifestError
 
-from .placement import DEVICES
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
-STAGES = ("load", "decompose", "noise", "masks", "recompose", "output")
+#: stages with an options table (key = the stage name), in pipeline order
+OPTION_STAGES = tuple(s.name for s in STAGES if s.config is not None)
 MAP_KEYS = ("albedo", "normal", "roughness", "height", "metallic")
 NORMAL_CONVENTIONS = ("opengl", "directx", "auto", "rot90", "swap_xy")
 COLORSPACES = ("srgb", "linear")
@@ -53,7 +65,7 @@ JOB_KEYS = {"name", "output", "stages", "database", "max_attempts", "mask_actors
 DEFAULT_STAGE_TIMEOUT_S = 3600.0
 MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "metallic_channel",
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
-                 "noise", "masks", "recompose", "stages"}
+                 *OPTION_STAGES, "stages"}
 DEFAULT_KEYS = MATERIAL_KEYS - {"name", "output", *MAP_KEYS}
 OUTPUT_KEYS = {"sizes", "seeds", "scales", "preview", "bits", "materialx"}
 DEBUG_KEYS = {"crash_once", "sleep"}
@@ -81,7 +93,10 @@ class OutputSpec:
 
 @dataclass
 class MaterialSpec:
-    """One material of a job: resolved map paths, options and per-stage configs."""
+    """One material of a job: resolved map paths, options and per-stage configs.
+
+    ``decompose`` and ``options`` (stage name -> its options table) hold JSON values: what :meth:`to_json` writes
+    is what the stage bodies read."""
 
     name: str
     output: str
@@ -92,10 +107,16 @@ class MaterialSpec:
     decompose: dict = field(default_factory=lambda: {"mode": "auto"})
     outputs: OutputSpec = field(default_factory=OutputSpec)
     seed: int = 0
-    noise: dict = field(default_factory=dict)
-    masks: dict = field(default_factory=dict)
-    recompose: dict = field(default_factory=dict)
+    options: dict[str, dict] = field(default_factory=dict)
     stages: list[str] | None = None
+
+    def stage_options(self, stage: str) -> dict:
+        """The options table of a stage ({} when the material gives none)."""
+        return self.options.get(stage, {})
+
+    def with_options(self, stage: str, **changes: Any) -> MaterialSpec:
+        """A copy whose options of ``stage`` have ``changes`` set."""
+        return dataclasses.replace(self, options={**self.options, stage: {**self.stage_options(stage), **changes}})
 
     def to_json(self) -> dict:
         """JSON-able form (paths as strings), also what workers receive."""
@@ -108,8 +129,8 @@ class MaterialSpec:
             "outputs": {"sizes": [list(s) for s in self.outputs.sizes], "seeds": list(self.outputs.seeds),
                         "scales": list(self.outputs.scales), "preview": self.outputs.preview,
                         "bits": self.outputs.bits, "materialx": self.outputs.materialx},
-            "seed": self.seed, "noise": _jsonable(self.noise), "masks": _jsonable(self.masks),
-            "recompose": _jsonable(self.recompose), "stages": self.stages,
+            "seed": self.seed, **{s: _jsonable(self.stage_options(s)) for s in OPTION_STAGES},
+            "stages": self.stages,
         }
 
     def input_files(self) -> list[Path]:
@@ -177,7 +198,8 @@ class JobManifest:
         """JSON-able form (stored in the job row)."""
         return {"name": self.name, "source": str(self.source) if self.source else None, "root": str(self.root),
                 "output": str(self.output), "database": str(self.database), "stages": self.stages,
-                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors, "stage_timeout": self.stage_timeout, "memory_budget": self.memory_budget,
+                "max_attempts": self.max_attempts, "mask_actors": self.mask_actors,
+                "stage_timeout": self.stage_timeout, "memory_budget": self.memory_budget,
                 "description": self.description, "pptbf_database": str(self.pptbf_database or ""),
                 "gpu_wait_s": self.gpu_wait_s, "recompose_cpus": self.recompose_cpus,
                 "materials": [m.to_json() for m in self.materials]}
@@ -203,16 +225,10 @@ def read_document(path: str | Path) -> dict:
         raise ManifestError(f"cannot read ({exc})", str(p)) from None
     try:
         if suffix == ".toml":
-            try:
-                import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                import tomli as tomllib
             doc = tomllib.loads(text)
         elif suffix == ".json":
             doc = json.loads(text)
         elif suffix in (".yaml", ".yml"):
-            import yaml
-
             doc = yaml.safe_load(text)
         else:
             raise ManifestError(f"unknown manifest type {suffix!r}; use .toml, .json, .yaml or .yml", str(p))
@@ -291,7 +307,8 @@ def _map_spec(v: Any, key: str, where: str, base: Path, channel: Any, probs: _Pr
     if channel is not None:
         if key not in ("roughness", "metallic", "height"):
             probs.add(f"{where}.channel", "a channel pick applies to grey maps (roughness, metallic, height) only")
-        elif not (_is_int(channel) and 0 <= channel < 64) and not (isinstance(channel, str) and _CHANNEL_RE.match(channel)):
+        elif not (_is_int(channel) and 0 <= channel < 64) and not (
+                isinstance(channel, str) and _CHANNEL_RE.match(channel)):
             probs.add(f"{where}.channel", f"must be R, G, B, A, a channel name or an index, got {channel!r}")
     file = Path(v).expanduser()
     return MapSpec(file=(file if file.is_absolute() else base / file).resolve(strict=False), channel=channel)
@@ -301,16 +318,16 @@ def _stage_list(v: Any, where: str, probs: _Problems) -> list[str] | None:
     if v is None:
         return None
     if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
-        probs.add(where, f"must be a non-empty list of stage names from {list(STAGES)}, got {v!r}")
+        probs.add(where, f"must be a non-empty list of stage names from {list(STAGE_NAMES)}, got {v!r}")
         return None
-    bad = [s for s in v if s not in STAGES]
+    bad = [s for s in v if s not in STAGE_NAMES]
     if bad:
-        probs.add(where, f"unknown stage(s) {bad}; stages are {list(STAGES)}")
+        probs.add(where, f"unknown stage(s) {bad}; stages are {list(STAGE_NAMES)}")
         return None
     if len(set(v)) != len(v):
         probs.add(where, "lists a stage twice")
         return None
-    return [s for s in STAGES if s in v]
+    return [s for s in STAGE_NAMES if s in v]
 
 
 def _outputs(v: Any, where: str, probs: _Problems) -> OutputSpec:
@@ -397,28 +414,22 @@ def _decompose(v: Any, where: str, base: Path, probs: _Problems) -> dict:
                                         "each other colour one layer)")
     if mode == "auto" and n:
         probs.add(f"{where}.scribbles", "given with mode \"auto\"; use mode \"scribbles\" (or drop the file)")
-    import importlib.util
-
-    if importlib.util.find_spec("workers.decompose") is not None:
-        import numpy as np
-
-        from workers.decompose import validate_spec
-
-        def placeholder(node: dict) -> dict:
-            node = dict(node)
-            if isinstance(node.get("scribbles"), str):
-                node["scribbles"] = np.zeros((2, 2), np.uint8)
-            if isinstance(node.get("children"), dict):
-                node["children"] = {k: placeholder(c) if isinstance(c, dict) else c
-                                    for k, c in node["children"].items()}
-            return node
-
-        try:
-            validate_spec(placeholder(d), where=where)
-        except ManifestError as exc:
-            for prob in exc.problems:
-                probs.append(prob)
+    try:
+        validate_spec(_unread_scribbles(d), where=where)
+    except ManifestError as exc:
+        for prob in exc.problems:
+            probs.append(prob)
     return {"mode": mode, **d}
+
+
+def _unread_scribbles(node: dict) -> dict:
+    """Copy of a decomposition spec tree for workers.decompose.validate_spec: it takes scribble images, which the
+    decompose stage reads from the files checked above, so each file path stands as None (not read yet)."""
+    node = {k: None if k == "scribbles" and isinstance(v, str) else v for k, v in node.items()}
+    if isinstance(node.get("children"), dict):
+        node["children"] = {k: _unread_scribbles(c) if isinstance(c, dict) else c
+                            for k, c in node["children"].items()}
+    return node
 
 
 def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs: _Problems) -> MaterialSpec | None:
@@ -474,18 +485,18 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
     if not (_is_int(seed) and seed >= 0):
         probs.add(f"{where}.seed", f"must be an integer >= 0, got {seed!r}")
         seed = 0
-    confs = {}
-    for key in ("noise", "masks", "recompose"):
-        c = merged.get(key, {})
+    options = {}
+    for st in STAGES:
+        if st.config is None:
+            continue
+        c = merged.get(st.name, {})
         if not isinstance(c, dict):
-            probs.add(f"{where}.{key}", f"must be a table of {key} stage options, got {c!r}")
+            probs.add(f"{where}.{st.name}", f"must be a table of {st.name} stage options, got {c!r}")
             c = {}
         if c:
-            fields = _config_fields(key)
-            if fields is not None:
-                probs.unknown(f"{where}.{key}", set(c), fields)
-                _check_options(key, c, f"{where}.{key}", probs)
-        confs[key] = c
+            probs.unknown(f"{where}.{st.name}", set(c), st.config_fields())
+            _check_options(st, c, f"{where}.{st.name}", probs)
+        options[st.name] = _jsonable(c)
     stages = _stage_list(merged.get("stages"), f"{where}.stages", probs)
     out_name = raw.get("output", name or f"material_{i}")
     if not isinstance(out_name, str) or not out_name.strip():
@@ -502,24 +513,8 @@ def _material(raw: Any, i: int, defaults: dict, root: Path, output: Path, probs:
     if name is None:
         return None
     return MaterialSpec(name=name, output=out_name, maps=maps, albedo_colorspace=cs, normal_convention=conv,
-                        working_size=working, decompose=dec, outputs=outs, seed=int(seed), noise=confs["noise"],
-                        masks=confs["masks"], recompose=confs["recompose"], stages=stages)
-
-
-_CONFIGS = {"noise": ("workers.noise", "NoiseConfig"), "masks": ("workers.masks", "MaskFitConfig"),
-            "recompose": ("workers.recompose", "RecomposeConfig")}
-
-
-def _config_fields(stage: str) -> set[str] | None:
-    """Option names a stage's config dataclass accepts (None when its module is not available)."""
-    import importlib
-    import importlib.util
-
-    mod, cls = _CONFIGS[stage]
-    if importlib.util.find_spec(mod) is None:
-        return None
-    c = getattr(importlib.import_module(mod), cls, None)
-    return set(c.__dataclass_fields__) if c is not None and hasattr(c, "__dataclass_fields__") else None
+                        working_size=working, decompose=_jsonable(dec), outputs=outs, seed=int(seed),
+                        options=options, stages=stages)
 
 
 #: the largest count or size any stage option may take (iterations, evaluations, windows, kernel sizes...)
@@ -566,14 +561,10 @@ def _option_problem(value: Any, kind: str) -> str | None:
     return None
 
 
-def _check_options(stage: str, options: dict, where: str, probs: _Problems) -> None:
+def _check_options(stage: Stage, options: dict, where: str, probs: _Problems) -> None:
     """Type and range of every option of a stage against its config dataclass, each problem naming its field;
     then the config's own checks (choices such as the optimiser) when it has them."""
-    import dataclasses
-    import importlib
-
-    mod, cls_name = _CONFIGS[stage]
-    cls = getattr(importlib.import_module(mod), cls_name)
+    cls = stage.config_class()
     types = {f.name: str(f.type) for f in dataclasses.fields(cls)}
     bad = False
     for k, v in options.items():
@@ -581,8 +572,9 @@ def _check_options(stage: str, options: dict, where: str, probs: _Problems) -> N
         if why:
             probs.add(f"{where}.{k}", f"{why}, got {v!r}")
             bad = True
-        allowed = _CHOICES.get((stage, k))
-        if k in types and not why and allowed is not None and not all(allowed(x) for x in (v if isinstance(v, list) else [v])):
+        allowed = _CHOICES.get((stage.name, k))
+        values = v if isinstance(v, list) else [v]
+        if k in types and not why and allowed is not None and not all(allowed(x) for x in values):
             probs.add(f"{where}.{k}", f"{v!r} is not one of the known values ({allowed.__doc__})")
             bad = True
     if bad or set(options) - set(types):
@@ -605,16 +597,13 @@ def _one_of(*values: str) -> Callable[[str], bool]:
 
 def _nlopt_algorithm(v: str) -> bool:
     """a local derivative-free NLopt algorithm name such as LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA"""
-    import nlopt
-
     return bool(re.fullmatch(r"LN_[A-Z_]+", v)) and hasattr(nlopt, v)
 
 
 #: string options with a closed set of values (stage, option) -> check
 _CHOICES: dict[tuple[str, str], Callable[[str], bool]] = {
     ("recompose", "optimizer"): _one_of("adam", "lbfgs"), ("recompose", "device"): _one_of(*DEVICES),
-    ("masks", "algorithm"): _nlopt_algorithm, ("masks", "incomplete"): _one_of("known", "inpaint"),
-    ("recompose", "optimise"): _one_of("filters", "blend", "level", "blur")}
+    ("masks", "algorithm"): _nlopt_algorithm, ("masks", "incomplete"): _one_of("known", "inpaint")}
 
 
 def parse_faults(v: Any, root: Path, probs: _Problems) -> dict:
@@ -627,14 +616,14 @@ def parse_faults(v: Any, root: Path, probs: _Problems) -> dict:
     out: dict = {}
     c = v.get("crash_once")
     if c is not None:
-        if not (isinstance(c, dict) and c.get("stage") in STAGES and isinstance(c.get("marker"), str)):
+        if not (isinstance(c, dict) and c.get("stage") in STAGE_NAMES and isinstance(c.get("marker"), str)):
             probs.add("debug.crash_once", "must be { stage = <stage>, marker = <file> }")
         else:
             out["crash_once"] = {"stage": c["stage"], "marker": str((root / c["marker"]).resolve(strict=False)),
                                  "material": c.get("material")}
     s = v.get("sleep")
     if s is not None:
-        if not (isinstance(s, dict) and s.get("stage") in STAGES and _is_num(s.get("seconds"))):
+        if not (isinstance(s, dict) and s.get("stage") in STAGE_NAMES and _is_num(s.get("seconds"))):
             probs.add("debug.sleep", "must be { stage = <stage>, seconds = <number> }")
         else:
             out["sleep"] = {"stage": s["stage"], "seconds": float(s["seconds"]), "material": s.get("material")}

@@ -99,7 +99,7 @@ def use_threads(n: int, load_torch: bool = False) -> None:
     os.environ["OMP_NUM_THREADS"] = str(n)
     if load_torch:
         import torch  # noqa: F401
-    torch = sys.modules.get("torch")
+    torch = sys.modules.get("torch")  # noqa: F811 - set the threads of a torch someone loaded
     if torch is not None and torch.get_num_threads() != n:
         torch.set_num_threads(n)
 

@@ -7,6 +7,7 @@ rendered from the published ``material.json`` at small sizes. All links are rela
 """
 from __future__ import annotations
 
+import copy
 import html
 import json
 import logging
@@ -19,10 +20,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from pptbf_db.errors import ProceduralizeError
+from service.pipeline import load_working_material, safe_name
+from service.stages import STAGE_NAMES
+from workers.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 MAP_ORDER = ("albedo", "normal", "roughness", "height", "metallic")
-STAGE_ORDER = ("load", "decompose", "noise", "masks", "recompose", "output")
 CSS = """
 body{font-family:system-ui,sans-serif;margin:1.2em 2em;color:#222;background:#fafafa}
 h1{font-size:1.5em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ccc}
@@ -114,8 +119,6 @@ def _html(title: str, body: str) -> str:
 
 def _section(title: str, fn: Callable[[], str]) -> str:
     """``<h2>title</h2>`` + fn(); a missing or broken artefact shows as a note instead of failing the report."""
-    from workers.errors import ProceduralizeError
-
     try:
         content = fn()
     except FileNotFoundError as exc:
@@ -174,7 +177,6 @@ def _read_json(path: Path) -> Any:
 
 def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -> str:
     """Input maps (load stage) vs procedural maps at the working size, and their renders."""
-    from service.pipeline import load_working_material
     from workers import graph
 
     inp = load_working_material(mdir).maps() if (mdir / "load" / "maps.npz").is_file() else {}
@@ -211,8 +213,6 @@ def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -
 
 def _tree_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
     """The decomposition tree as a nested list with mask thumbnails, split methods and coverage."""
-    from service.pipeline import safe_name
-
     doc = _read_json(mdir / "decompose" / "tree.json")
     fits = {}
     for p in sorted((mdir / "masks").glob("*.json")) if (mdir / "masks").is_dir() else []:
@@ -286,7 +286,7 @@ def _timings_section(store, job: str, material: str) -> str:
     items = store.items(job, material)
     if not items:
         return '<p class="muted">no stage has run yet</p>'
-    rank = {s: i for i, s in enumerate(STAGE_ORDER)}
+    rank = {s: i for i, s in enumerate(STAGE_NAMES)}
     items.sort(key=lambda r: (rank.get(r["stage"], 99), r["item"] or ""))
     rows = [(_e(r["stage"]), _e(r["item"] or "-"), _status(r["status"]), _num(r["attempts"]),
              _num(r["duration"], 3), _e(r["worker"] or "-")) for r in items]
@@ -302,8 +302,8 @@ _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
 #: error kinds that are about the input (bad file, option, budget, timeout), not about the code: the report
 #: shows their message only; any other kind is an internal error and keeps its traceback for a developer
-USER_ERRORS = {"InputError", "ManifestError", "GraphError", "DatabaseError", "MemoryBudgetError", "StageTimeout",
-               "StageUnavailable"}
+USER_ERRORS = {"InputError", "ManifestError", "GraphError", "DatabaseError", "WeightsError", "MemoryBudgetError",
+               "StageTimeout"}
 
 
 def _message(text: str, kind: str | None = None) -> str:
@@ -372,10 +372,8 @@ def editing_cases(working_size: tuple[int, int], seed: int, base: int) -> list[E
 
 def _editing_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
     """Each editing case as albedo + render, images at one zoom so sizes compare; then a parameter edit."""
-    import copy
-
-    from service.export_cmd import apply_edits, suggest_edit
     from workers import graph
+    from workers.edit import apply_edits, suggest_edit
 
     mat, path = _load_graph(mdir)
     if mat is None:
@@ -423,8 +421,6 @@ def _editing_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
 def _material_page(store, job: dict, material: dict, root: Path, opts: ReportOptions,
                    metrics: dict | None, job_ref: str) -> dict:
     """Write ``<root>/<material>.html``; return what the index shows about it."""
-    from service.pipeline import safe_name
-
     key = safe_name(material["name"])
     mdir = Path(job["output"]) / (material["output"] or material["name"])
     page = _Page(root=root, img_dir=f"img/{key}")
@@ -512,8 +508,6 @@ def build_report(store, job_name: str, out: Path | None = None, options: ReportO
     opts = options or ReportOptions()
     job = store.job(job_name)
     if job is None:
-        from workers.errors import InputError
-
         raise InputError(f"no job named {job_name!r} in the database")
     job = dict(job, output=str(store.output_root(job_name)))  # where the files are now (a copied job too)
     root = Path(out) if out is not None else Path(job["output"]) / "report"
@@ -528,42 +522,3 @@ def build_report(store, job_name: str, out: Path | None = None, options: ReportO
     index = root / "index.html"
     index.write_text(_index_page(store, job, summaries, metrics, ref), encoding="utf-8")
     return index
-
-
-# ----------------------------------------------------------------------------- CLI
-
-
-def _add_report(sub) -> None:
-    from service.cli import _common
-
-    p = sub.add_parser("report", parents=[_common()], help="write a static HTML report of a job",
-                       description="Write index.html (job summary) and one page per material: input vs "
-                                   "procedural maps and renders, the decomposition tree with masks, PPTBF fits, "
-                                   "recomposition loss, metrics (from 'proceduralize evaluate'), timings, errors "
-                                   "and editing examples (super-resolution, extension, pattern scale, new seed, "
-                                   "a parameter edit). Open index.html in a browser; no server needed.")
-    p.add_argument("job", metavar="JOB", help="job name, manifest, output folder or database file")
-    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="report folder (default <job output>/report)")
-    p.add_argument("--edit-size", type=int, default=ReportOptions.edit_size, metavar="PX",
-                   help=f"largest side of the editing previews (default {ReportOptions.edit_size}; doubled "
-                        f"for super-resolution and extension)")
-    p.add_argument("--no-editing", action="store_true", help="skip the editing section (faster)")
-    p.set_defaults(handler=_cmd_report)
-
-
-def _cmd_report(args) -> int:
-    from service.cli import _open_job
-    from workers.errors import InputError
-
-    if args.edit_size < 8:
-        raise InputError(f"--edit-size {args.edit_size}: must be >= 8")
-    store, name = _open_job(args.job)
-    t0 = time.perf_counter()
-    with store:
-        index = build_report(store, name, args.out, ReportOptions(edit_size=args.edit_size,
-                                                                  editing=not args.no_editing), job_ref=args.job)
-    print(f"report of job {name} written in {time.perf_counter() - t0:.1f} s: {index}")
-    return 0
-
-
-COMMANDS = [_add_report]

@@ -6,6 +6,9 @@ material at once and, as results come back, records them and submits what became
     load -> decompose -> { noise (one task per leaf x map), masks (one call per tree node, on a pool of
     CPU actors holding the PPTBF index) } -> recompose (GPU or CPU actors, see service.placement) -> output
 
+Stages, what they need, their work items and where they run (a task, a mask actor, a recomposition actor)
+are read from their declarations in :mod:`service.stages`.
+
 Worker crashes (WorkerCrashedError, RayActorError, ...) are retried up to ``max_attempts``; an
 exception inside a stage fails only its material. A stage item whose row is done and whose artefacts are
 on disk with the recorded checksums is skipped on a rerun (resume).
@@ -35,9 +38,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import claims, pipeline, placement
-from service.manifest import JobManifest, MaterialSpec
-from service.pipeline import DEPENDS, NOISE_MAPS, STAGES, StageCall
+import ray
+import ray.exceptions as rex
+from tqdm import tqdm
+
+from service import claims, placement
+from service.manifest import JobManifest, MaterialSpec, _Problems
+from service.manifest import parse_faults as _parse_faults
+from service.stages import STAGE_NAMES, Placement, StageCall, run_stage, stage
 from service.store import Store
 from workers.errors import InputError, ManifestError
 
@@ -128,8 +136,6 @@ class _Pool:
 
 def _retryable_errors() -> tuple[type, ...]:
     """Ray errors that mean "the worker/actor/node went away", not "the stage raised"."""
-    import ray.exceptions as rex
-
     names = ("WorkerCrashedError", "RayActorError", "ActorDiedError", "ActorUnavailableError", "ObjectLostError",
              "OwnerDiedError", "NodeDiedError", "LocalRayletDiedError", "TaskUnschedulableError")
     # OutOfMemoryError is not among them: the same item on the same inputs would run out of memory again
@@ -139,10 +145,8 @@ def _retryable_errors() -> tuple[type, ...]:
 def parse_faults(doc: dict, where: str = "faults") -> dict:
     """Validated fault-injection hooks (tests only): {crash_once: {stage, marker, material}, sleep: {stage,
     seconds, material}}."""
-    from service.manifest import _Problems, parse_faults as parse
-
     probs = _Problems()
-    out = parse(doc, Path.cwd(), probs)
+    out = _parse_faults(doc, Path.cwd(), probs)
     if probs:
         raise ManifestError(list(probs), where)
     return out
@@ -163,8 +167,6 @@ def faults_from_env() -> dict:
 def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     """Connect to ``address`` or start a new local Ray bound to loopback; True when this call started/connected
     it."""
-    import ray
-
     if ray.is_initialized():
         return False
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
@@ -181,16 +183,14 @@ def ensure_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
 
 def _on_node(result: dict) -> dict:
     """Tag a stage result's worker with the Ray node it ran on (``host:pid@node``)."""
-    import ray
-
     result["worker"] = f"{result.get('worker')}@{ray.get_runtime_context().get_node_id()[:8]}"
     return result
 
 
-def run_stage_task(call: dict) -> dict:
+def run_stage_task(call: StageCall) -> dict:
     """Body of the per-stage Ray task (1 CPU reserved, 1 thread)."""
     placement.use_threads(1)
-    return _on_node(pipeline.run_stage(call))
+    return _on_node(run_stage(call))
 
 
 class _StageActor:
@@ -199,25 +199,25 @@ class _StageActor:
     Its torch threads follow its CPU reservation; a recomposer placed for CUDA checks that torch sees a device
     and otherwise runs on CPU (logged, and noted in each result's info)."""
 
-    def __init__(self, kind: str, device: str = "cpu", database: str | None = None, threads: int = 1):
-        from workers.actors import MaskFitter, Recomposer
+    def __init__(self, kind: Placement, device: str = "cpu", database: str | None = None, threads: int = 1):
+        from workers.actors import MaskFitter, Recomposer  # torch: loaded in the actor, not in the driver
 
-        placement.use_threads(threads, load_torch=kind == "recompose")
+        recompose = kind is Placement.RECOMPOSE_ACTOR
+        placement.use_threads(threads, load_torch=recompose)
         self.kind = kind
-        self.device, self.note = placement.pick_torch_device(device) if kind == "recompose" else ("cpu", None)
-        self.resources = MaskFitter(database) if kind == "masks" else Recomposer(self.device)
+        self.device, self.note = placement.pick_torch_device(device) if recompose else ("cpu", None)
+        self.holder = Recomposer(self.device) if recompose else MaskFitter(database)
 
-    def run(self, call: dict) -> dict:
-        if self.kind == "recompose":  # the actor's device wins over the material's option (which chose the pool)
-            call["material"]["recompose"] = dict(call["material"].get("recompose") or {}, device=self.device)
-        result = _on_node(pipeline.run_stage(call, self.resources))
-        if self.kind == "recompose" and self.note:
+    def run(self, call: StageCall) -> dict:
+        recompose = self.kind is Placement.RECOMPOSE_ACTOR
+        if recompose:  # the actor's device wins over the material's option (which chose the pool)
+            call.spec = call.spec.with_options(call.stage, device=self.device)
+        result = _on_node(run_stage(call, self.holder))
+        if recompose and self.note:
             result["info"]["placement_note"] = self.note
         return result
 
     def ready(self) -> dict:
-        import ray
-
         return {"pid": os.getpid(), "node": ray.get_runtime_context().get_node_id()[:8], "device": self.device,
                 "note": self.note, "threads": _torch_threads()}
 
@@ -232,8 +232,6 @@ class Scheduler:
 
     def __init__(self, manifest: JobManifest, store: Store | None = None, progress: bool = True,
                  mask_database: str | None = None, faults: dict | None = None):
-        import ray
-
         self.manifest = manifest
         self.faults = parse_faults(faults) if faults is not None else faults_from_env()
         self.store = store or Store(manifest.database)
@@ -268,51 +266,30 @@ class Scheduler:
 
     def _plan(self, spec: MaterialSpec) -> tuple[list[str], str | None]:
         """Stages to run for a material and an error if the plan cannot work."""
-        mdict = spec.to_json()
-        explicit = spec.stages or self.manifest.stages
-        if explicit:
-            plan = list(explicit)
-        else:
-            plan = []
-            for s in STAGES:
-                missing = pipeline.missing_modules(s, mdict)
-                if missing:
-                    self.store.mark_item(self.manifest.name, spec.name, s, "", "unavailable",
-                                         f"module(s) {', '.join(missing)} not available; stage not run")
-                    logger.warning("%s: stage %s not run: module(s) %s not available", spec.name, s,
-                                   ", ".join(missing))
-                elif all(d in plan for d in DEPENDS[s]):
-                    plan.append(s)
+        plan = list(spec.stages or self.manifest.stages or STAGE_NAMES)
         for s in plan:
-            for d in DEPENDS[s]:
+            for d in stage(s).needs:
                 if d not in plan and not self._stage_done_before(spec.name, d):
                     return plan, (f"stage {s!r} needs stage {d!r}, which is neither in this job's stages nor "
                                   "finished by an earlier run")
         return plan, None
 
-    def _stage_done_before(self, material: str, stage: str) -> bool:
-        rows = self.store.items(self.manifest.name, material, stage)
-        return bool(rows) and all(self.store.is_done(self.manifest.name, material, stage, r["item"],
+    def _stage_done_before(self, material: str, name: str) -> bool:
+        rows = self.store.items(self.manifest.name, material, name)
+        return bool(rows) and all(self.store.is_done(self.manifest.name, material, name, r["item"],
                                                      self.manifest.output) for r in rows)
 
-    def _items(self, m: _Material, stage: str) -> list[str]:
-        """Work items of a stage (noise: leaf/map; masks: fitted tree nodes; output: renders; else one)."""
-        if stage == "output":
-            return pipeline.output_renders(m.spec.to_json())
-        if stage not in ("noise", "masks"):
-            return [""]
-        tree = m.info.get("decompose") or self.store.done_info(self.manifest.name, m.spec.name, "decompose")
-        if stage == "noise":
-            maps = (m.info.get("load") or self.store.done_info(self.manifest.name, m.spec.name, "load")).get("maps", [])
-            return [f"{leaf}/{mp}" for leaf in tree.get("leaves", []) for mp in NOISE_MAPS if mp in maps]
-        return list(tree.get("fit_masks", tree.get("nodes", [])[1:]))
+    def _items(self, m: _Material, name: str) -> list[str]:
+        """Work items of a stage for ``m``, planned from what its predecessors recorded."""
+        return stage(name).items(m.spec, lambda s: m.info.get(s) or self.store.done_info(self.manifest.name,
+                                                                                      m.spec.name, s))
 
     # -- submission
 
-    def _call(self, m: _Material, stage: str, item: str) -> dict:
-        return StageCall(job=self.manifest.name, root=str(self.manifest.output), material=m.spec.to_json(),
-                         stage=stage, item=item, debug=self.faults, timeout=self.manifest.stage_timeout,
-                         memory_budget=self.manifest.memory_budget).to_dict()
+    def _call(self, m: _Material, name: str, item: str) -> StageCall:
+        return StageCall(job=self.manifest.name, root=str(self.manifest.output), spec=m.spec, stage=name,
+                         item=item, debug=self.faults, timeout=self.manifest.stage_timeout,
+                         memory_budget=self.manifest.memory_budget)
 
     # -- actor pools
 
@@ -347,12 +324,10 @@ class Scheduler:
 
     def _start_actor(self, pool: _Pool) -> None:
         """Request one more actor for ``pool`` (pending until Ray, or the autoscaler, finds it a node)."""
-        import ray
-
         threads = int(pool.cpus)
         opts = placement.actor_options(pool.kind, threads, self.capacity)
-        args = (("masks", "cpu", self.mask_database, 1) if pool.kind == "masks" else
-                ("recompose", "cuda" if pool.kind == "gpu" else "cpu", None, threads))
+        args = ((Placement.MASK_ACTOR, "cpu", self.mask_database, 1) if pool.kind == "masks" else
+                (Placement.RECOMPOSE_ACTOR, "cuda" if pool.kind == "gpu" else "cpu", None, threads))
         handle = ray.remote(max_restarts=0, max_task_retries=0, **opts)(_StageActor).remote(*args)
         slot = _Slot(handle=handle, ready_ref=handle.ready.remote(), started=time.monotonic())
         pool.slots.append(slot)
@@ -363,8 +338,6 @@ class Scheduler:
 
     def _drop_slot(self, pool: _Pool, slot: _Slot) -> None:
         """Kill an actor and forget it (a retired idle one, a dead one, a pending one no longer wanted)."""
-        import ray
-
         if slot in pool.slots:
             pool.slots.remove(slot)
         self._starting.pop(slot.ready_ref, None)
@@ -374,8 +347,6 @@ class Scheduler:
             pass
 
     def _on_actor_ready(self, ref: Any) -> None:
-        import ray
-
         pool, slot = self._starting.pop(ref)
         try:
             info = ray.get(ref)
@@ -404,23 +375,30 @@ class Scheduler:
                                                  f"times: {why}")
         pool.queue.clear()
 
-    def _recompose_kind(self, m: _Material) -> str | None:
-        """The pool that recomposes ``m`` ("gpu" or "cpu"), or None when it cannot run (material failed)."""
-        device = (m.spec.recompose or {}).get("device", "auto")
+    @staticmethod
+    def _device(m: _Material, name: str) -> str:
+        """The ``device`` option of a recomposition-actor stage of ``m``: auto, cuda or cpu."""
+        return m.spec.stage_options(name).get("device", "auto")
+
+    def _recompose_kind(self, m: _Material, name: str) -> str | None:
+        """The pool that runs stage ``name`` of ``m`` on a recomposition actor ("gpu" or "cpu"), or None when it
+        cannot run (material failed)."""
+        device = self._device(m, name)
         kind = placement.recompose_route(device, self.capacity)
         if kind == "gpu" and self._gpu_gave_up:
             if device == "cuda":
-                self._fail_material(m, f"recompose: recompose.device = 'cuda' but {self._gpu_gave_up}")
+                self._fail_material(m, f"{name}: {name}.device = 'cuda' but {self._gpu_gave_up}")
                 return None
-            self._notes[m.spec.name] = f"{self._gpu_gave_up}; recomposed on CPU (recompose.device = 'auto')"
+            self._notes[m.spec.name] = f"{self._gpu_gave_up}; recomposed on CPU ({name}.device = 'auto')"
             return "cpu"
         return kind
 
     def _wants_gpu(self, m: _Material) -> bool:
         """True when ``m`` will recompose on a GPU in this run (not failed, not finished by an earlier run)."""
-        return (m.error is None and "recompose" in m.plan
-                and placement.recompose_route((m.spec.recompose or {}).get("device", "auto"), self.capacity) == "gpu"
-                and not self._stage_done_before(m.spec.name, "recompose"))
+        return m.error is None and any(
+            stage(s).placement is Placement.RECOMPOSE_ACTOR
+            and placement.recompose_route(self._device(m, s), self.capacity) == "gpu"
+            and not self._stage_done_before(m.spec.name, s) for s in m.plan)
 
     def _give_up_gpu(self, why: str) -> None:
         """Stop waiting for GPUs: withdraw the pending GPU actors and move the GPU queue to CPU ("auto")."""
@@ -435,7 +413,7 @@ class Scheduler:
         for entry in queued:
             m = self.mats[entry[0]]
             if m.error is None:
-                kind = self._recompose_kind(m)
+                kind = self._recompose_kind(m, entry[1])
                 if kind is not None:
                     self._pool(kind).queue.append(entry)
 
@@ -453,21 +431,21 @@ class Scheduler:
             self._give_up_gpu(f"no GPU actor started within job.gpu_wait_s = {self.manifest.gpu_wait_s:g} s "
                               f"(cluster: {placement.describe(self.capacity)})")
 
-    def _enqueue(self, m: _Material, stage: str, item: str, attempt: int) -> None:
+    def _enqueue(self, m: _Material, name: str, item: str, attempt: int) -> None:
         """Queue an actor-stage item in the driver; ``_pump`` hands it to an idle actor of its pool."""
-        kind = "masks" if stage == "masks" else self._recompose_kind(m)
+        kind = "masks" if stage(name).placement is Placement.MASK_ACTOR else self._recompose_kind(m, name)
         if kind is None:
             return
-        self.store.mark_item(self.manifest.name, m.spec.name, stage, item, "queued")
-        self._pool(kind).queue.append((m.spec.name, stage, item, attempt, time.time()))
+        self.store.mark_item(self.manifest.name, m.spec.name, name, item, "queued")
+        self._pool(kind).queue.append((m.spec.name, name, item, attempt, time.time()))
 
     def _dispatch(self, slot: _Slot, entry: tuple) -> None:
-        name, stage, item, attempt, queued = entry
-        m = self.mats[name]
-        self.store.start_item(self.manifest.name, name, stage, item)
-        ref = slot.handle.run.remote(self._call(m, stage, item))
+        material, name, item, attempt, queued = entry
+        m = self.mats[material]
+        self.store.start_item(self.manifest.name, material, name, item)
+        ref = slot.handle.run.remote(self._call(m, name, item))
         slot.busy = ref
-        self.inflight[ref] = _Flight(name, stage, item, attempt, slot, queued)
+        self.inflight[ref] = _Flight(material, name, item, attempt, slot, queued)
 
     def _pump(self) -> None:
         """Hand queued items to idle actors, grow pools to their queue (within their bound), retire idle actors
@@ -511,57 +489,51 @@ class Scheduler:
     def _queued(self) -> int:
         return sum(len(p.queue) for p in self._pools.values())
 
-    def _submit(self, m: _Material, stage: str, item: str) -> None:
-        key = (m.spec.name, stage, item)
+    def _submit(self, m: _Material, name: str, item: str) -> None:
+        key = (m.spec.name, name, item)
         attempt = self._tries[key] = self._tries.get(key, 0) + 1  # attempts in this run decide retries
-        if stage in ("masks", "recompose"):
-            self._enqueue(m, stage, item, attempt)
+        if stage(name).placement is not Placement.TASK:
+            self._enqueue(m, name, item, attempt)
             return
-        self.store.start_item(self.manifest.name, m.spec.name, stage, item)
-        call = self._call(m, stage, item)
-        ref = self._task.options(name=f"{m.spec.name}:{stage}:{item}"[:100]).remote(call)
-        self.inflight[ref] = _Flight(m.spec.name, stage, item, attempt, None, time.time())
+        self.store.start_item(self.manifest.name, m.spec.name, name, item)
+        call = self._call(m, name, item)
+        ref = self._task.options(name=f"{m.spec.name}:{name}:{item}"[:100]).remote(call)
+        self.inflight[ref] = _Flight(m.spec.name, name, item, attempt, None, time.time())
 
     def _advance(self, m: _Material) -> None:
         """Submit every stage of ``m`` whose prerequisites are done; reuse finished items (resume)."""
         progressed = True
         while progressed and m.error is None:
             progressed = False
-            for stage in m.plan:
-                if stage in m.submitted or any(d in m.plan and d not in m.done for d in DEPENDS[stage]):
+            for name in m.plan:
+                needs = stage(name).needs
+                if name in m.submitted or any(d in m.plan and d not in m.done for d in needs):
                     continue
-                m.submitted.add(stage)
-                missing = pipeline.missing_modules(stage, m.spec.to_json())
-                if missing:
-                    msg = (f"StageUnavailable: stage {stage!r} needs module(s) {', '.join(missing)}, which are "
-                           "not installed; drop it from the stages list or install it")
-                    self.store.fail_item(self.manifest.name, m.spec.name, stage, "", msg, "StageUnavailable")
-                    self._fail_material(m, f"{stage}: {msg}")
-                    return
-                items = self._items(m, stage)
-                stale = any(d in m.fresh for d in DEPENDS[stage])  # an input was recomputed in this run
+                m.submitted.add(name)
+                items = self._items(m, name)
+                stale = any(d in m.fresh for d in needs)  # an input was recomputed in this run
                 todo = set()
                 for item in items:
-                    if not stale and self.store.is_done(self.manifest.name, m.spec.name, stage, item,
+                    if not stale and self.store.is_done(self.manifest.name, m.spec.name, name, item,
                                                         self.manifest.output):
                         self.reused += 1
-                        if item == "" and stage in ("load", "decompose"):
-                            m.info[stage] = self.store.done_info(self.manifest.name, m.spec.name, stage)
+                        if item == "":  # what the next stages plan their items from
+                            m.info[name] = self.store.done_info(self.manifest.name, m.spec.name, name)
                     else:
                         todo.add(item)
-                if not items and (stale or not self.store.is_done(self.manifest.name, m.spec.name, stage, "",
+                if not items and (stale or not self.store.is_done(self.manifest.name, m.spec.name, name, "",
                                                                   self.manifest.output)):
-                    self.store.finish_item(self.manifest.name, m.spec.name, stage, "", {"info": {"items": 0}})
+                    self.store.finish_item(self.manifest.name, m.spec.name, name, "", {"info": {"items": 0}})
                 self._bar_total(len(todo))
                 if not todo:
-                    m.done.add(stage)
-                    self._say(m.spec.name, stage, f"reused ({len(items)} item(s))" if items else "nothing to do")
+                    m.done.add(name)
+                    self._say(m.spec.name, name, f"reused ({len(items)} item(s))" if items else "nothing to do")
                     progressed = True
                     continue
-                m.waiting[stage] = todo
-                m.fresh.add(stage)
+                m.waiting[name] = todo
+                m.fresh.add(name)
                 for item in sorted(todo):
-                    self._submit(m, stage, item)
+                    self._submit(m, name, item)
 
     # -- results
 
@@ -569,13 +541,13 @@ class Scheduler:
         m = self.mats[fl.material]
         wait = max(0.0, float(result.get("started", fl.queued)) - fl.queued) if fl.queued else None
         self.store.finish_item(self.manifest.name, fl.material, fl.stage, fl.item, result, wait=wait)
-        if fl.stage == "recompose":
+        if stage(fl.stage).placement is Placement.RECOMPOSE_ACTOR:  # the device it really ran on
             info = result.get("info", {})
             self.store.set_device(self.manifest.name, fl.material, str(info.get("device", "cpu")),
                                   info.get("placement_note") or self._notes.get(fl.material))
         self.executed += 1
         self._bar_step()
-        if fl.item == "" and fl.stage in ("load", "decompose"):
+        if fl.item == "":  # what the next stages plan their items from
             m.info[fl.stage] = result.get("info", {})
         waiting = m.waiting.get(fl.stage, set())
         waiting.discard(fl.item)
@@ -587,8 +559,6 @@ class Scheduler:
         self._maybe_finish(m)
 
     def _fail_material(self, m: _Material, message: str) -> None:
-        import ray
-
         if m.error is not None:
             return
         m.error = message
@@ -599,8 +569,6 @@ class Scheduler:
                 ray.cancel(ref, force=False)
 
     def _on_error(self, fl: _Flight, exc: BaseException) -> None:
-        import ray
-
         m = self.mats[fl.material]
         if m.error is not None:
             self.store.mark_item(self.manifest.name, fl.material, fl.stage, fl.item, "cancelled", m.error)
@@ -639,12 +607,10 @@ class Scheduler:
 
     # -- progress
 
-    def _say(self, material: str, stage: str, text: str) -> None:
-        logger.info("%s %s %s", material, stage, text)
+    def _say(self, material: str, name: str, text: str) -> None:
+        logger.info("%s %s %s", material, name, text)
         if self.progress:
-            from tqdm import tqdm
-
-            tqdm.write(f"{material:<28} {stage:<9} {text}", file=sys.stderr)
+            tqdm.write(f"{material:<28} {name:<9} {text}", file=sys.stderr)
 
     def _bar_total(self, n: int) -> None:
         if self._bar is not None and n:
@@ -659,9 +625,6 @@ class Scheduler:
 
     def run(self) -> JobReport:
         """Run (or resume) the job; returns the per-material outcome."""
-        import ray
-        from tqdm import tqdm
-
         t0 = time.perf_counter()
         job = self.manifest
         self.manifest.output.mkdir(parents=True, exist_ok=True)
@@ -756,8 +719,6 @@ class Scheduler:
 def run_job(manifest: JobManifest, address: str | None = None, num_cpus: int | None = None,
             progress: bool = True, mask_database: str | None = None) -> JobReport:
     """Run a validated job on Ray (local unless ``address``); shuts Ray down only if this call started it."""
-    import ray
-
     started = ensure_ray(address, num_cpus)
     try:
         return Scheduler(manifest, progress=progress, mask_database=mask_database).run()

@@ -20,7 +20,8 @@ from typing import Any, Callable, Iterator
 
 import sqlite_utils
 
-from workers.errors import DatabaseError
+from pptbf_db.errors import DatabaseError
+from service.stages import STAGE_NAMES
 
 logger = logging.getLogger(__name__)
 
@@ -233,7 +234,8 @@ class Store:
     def set_device(self, job: str, material: str, device: str, note: str | None = None) -> None:
         """Record the torch device a material's recomposition ran on and, if it is not the one asked for, why."""
         with self.tx() as db:
-            db.execute("UPDATE materials SET device = ?, device_note = ? WHERE id = ?", [device, note, f"{job}/{material}"])
+            db.execute("UPDATE materials SET device = ?, device_note = ? WHERE id = ?",
+                       [device, note, f"{job}/{material}"])
 
     # -- stage items
 
@@ -285,7 +287,8 @@ class Store:
         now = _now()
         with self.tx() as db:
             self._ensure_item(db, job, material, stage, item)
-            attempt = db.execute("SELECT attempts FROM stages WHERE job = ? AND material = ? AND stage = ? AND item = ?",
+            attempt = db.execute("SELECT attempts FROM stages "
+                                 "WHERE job = ? AND material = ? AND stage = ? AND item = ?",
                                  [job, material, stage, item]).fetchone()[0]
             db.execute("INSERT INTO errors (job, material, stage, item, time, attempt, kind, message, final) "
                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", [job, material, stage, item, now, attempt, kind,
@@ -372,12 +375,12 @@ class Store:
     def stage_summary(self, job: str) -> list[dict]:
         """Per material and stage: status, items done/total, attempts, executions, seconds, seconds waiting for a
         slot."""
-        order = "CASE stage " + " ".join(f"WHEN '{s}' THEN {i}" for i, s in enumerate(
-            ("load", "decompose", "noise", "masks", "recompose", "output"))) + " ELSE 99 END"
+        order = "CASE stage " + " ".join(f"WHEN '{s}' THEN {i}" for i, s in enumerate(STAGE_NAMES)) + " ELSE 99 END"
         sql = (f"SELECT material, stage, COUNT(*) AS items, SUM(status = 'done') AS done, "
                f"SUM(status = 'failed') AS failed, SUM(status = 'unavailable') AS unavailable, "
                f"SUM(status = 'running') AS running, "
-               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, SUM(wait) AS wait, "
+               f"SUM(attempts) AS attempts, SUM(executions) AS executions, SUM(duration) AS seconds, "
+               f"SUM(wait) AS wait, "
                f"GROUP_CONCAT(DISTINCT worker) AS workers, MAX(error) AS error "
                f"FROM stages WHERE job = ? GROUP BY material, stage ORDER BY material, {order}")
         cur = self.db.execute(sql, [job])

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from pptbf_db import pptbf
-from pptbf_db.build import BuildConfig, build_database, clear_database, with_dim
+from pptbf_db.build import BuildConfig, clear_database, with_dim
 from pptbf_db.descriptor import DescriptorConfig
+from pptbf_db.errors import DatabaseError
 from pptbf_db.index import PPTBFIndex, default_database_path
-from workers.errors import DatabaseError
+from service.db_build import build_database
 
 pytestmark = pytest.mark.ray
 

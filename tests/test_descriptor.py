@@ -6,8 +6,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from pptbf_db import pptbf
-from pptbf_db.descriptor import (DescriptorConfig, block_slices, describe_masks, fit_pca, lbp_histograms,
-                                 spectrum_block)
+from pptbf_db.descriptor import DescriptorConfig, block_slices, describe_masks, fit_pca, lbp_histograms, spectrum_block
 
 CFG = DescriptorConfig()
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from service.cli import main
-from service.export_cmd import editable_params, parse_assignment, suggest_edit
 from workers import graph
+from workers.edit import editable_params, parse_assignment, suggest_edit
 from workers.maps import read_image
 
 # a PPTBF parameter vector fitted to castle_brick_broken_06 by the pipeline (a real brick-like mask)
@@ -88,6 +88,32 @@ def test_edit_list_shows_parameters_and_values(tmp_path, capsys):
     assert rows["mask.params.0"]["type"] == "pptbf" and rows["mask.params.0"]["label"]
     assert len([p for p in rows if p.startswith("mask.params.")]) == len(BRICK_PPTBF)
     assert main(["edit", str(src)]) == 2  # nothing to do
+
+
+def test_insert_warps_a_mask_for_every_map_that_read_it(tmp_path, capsys):
+    """--insert puts a warp after the mask: every blend, level and blur that read the mask reads the warp; a
+    constant driver of 1 with amount 6 along x shifts all maps by 3 px (exactly, bilinear with whole pixels)."""
+    src = pattern_material(tmp_path / "m.json")
+    m = graph.load(src)
+    m.add("one", "constant", {"value": [1.0]})
+    graph.save(m, src)
+    out = tmp_path / "warped.json"
+    assert main(["edit", str(src), "--insert", "mask=warp(by=one, amount=6, angle=0)", "--out", str(out)]) == 0
+    assert "inserted warp node mask_warp after mask" in capsys.readouterr().out
+    warped = graph.load(out)
+    readers = {nid for nid, n in warped.nodes.items() if "mask_warp" in n["inputs"].values()}
+    assert readers == {"inv", "blend_albedo", "rough", "height"}
+    assert warped.node("mask_warp")["inputs"] == {"input": "mask", "by": "one"}
+    before, after = graph.evaluate(graph.load(src), 64, 64), graph.evaluate(warped, 64, 64)
+    for name in ("albedo", "roughness", "height", "metallic"):
+        np.testing.assert_allclose(after[name], np.roll(before[name], 3, axis=1), atol=1e-5, err_msg=name)
+    # refused: a missing driver, an unknown parameter, a bad value, an unknown type; the file is left alone
+    for text, message in (("mask=warp(amount=2)", "needs input(s) by"), ("mask=warp(by=one, gain=2)", "no input or "
+                          "parameter 'gain'"), ("mask=warp(by=one, amount=1e9)", "warp.amount"),
+                          ("mask=swirl(by=one)", "unknown node type 'swirl'"), ("mask warp", "expected NODE=TYPE")):
+        assert main(["edit", str(out), "--insert", text]) == 2, text
+        assert message in capsys.readouterr().err, text
+    assert graph.load(out).to_json() == warped.to_json()
 
 
 def test_parse_assignment_and_suggested_edit(tmp_path):

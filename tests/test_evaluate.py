@@ -1,7 +1,7 @@
 """Quality scorecard (workers.evaluate, service.evaluate, ``proceduralize evaluate``) with real maps and a real job.
 
 The job is built without Ray: a manifest validated by service.manifest, its stages run in-process through
-service.pipeline.run_stage and recorded in a real SQLite Store, as the scheduler would record them.
+service.stages.run_stage and recorded in a real SQLite Store, as the scheduler would record them.
 """
 from __future__ import annotations
 
@@ -16,11 +16,19 @@ import pytest
 
 from service.cli import main
 from service.manifest import validate
-from service.pipeline import NOISE_MAPS, StageCall, output_renders, run_stage
+from service.stages import STAGES, StageCall, run_stage
 from service.store import Store
 from tests.conftest import real_material_files
-from workers.evaluate import (METHODS, METRICS, EvalConfig, baselines, crop_to, evaluate_material, reference_size,
-                              summarise)
+from workers.evaluate import (
+    METHODS,
+    METRICS,
+    EvalConfig,
+    baselines,
+    crop_to,
+    evaluate_material,
+    reference_size,
+    summarise,
+)
 
 MAPS = ("albedo", "normal", "roughness", "height")
 
@@ -119,22 +127,13 @@ def test_missing_procedural_map_gives_nan_row_and_summary_ratios(bricks):
 
 def _run_material(store: Store, man, spec) -> None:
     """Run one material's stages in-process and record them as the scheduler does (a failure ends the material)."""
-    mdict = spec.to_json()
     store.set_material(man.name, spec.name, "running")
     infos: dict = {}
-    for stage in ("load", "decompose", "noise", "masks", "recompose", "output"):
-        if stage == "noise":
-            items = [f"{leaf}/{mp}" for leaf in infos["decompose"]["leaves"] for mp in NOISE_MAPS
-                     if mp in infos["load"]["maps"]]
-        elif stage == "masks":
-            items = infos["decompose"]["fit_masks"]
-        elif stage == "output":
-            items = output_renders(mdict)
-        else:
-            items = [""]
-        for item in items:
+    for st in STAGES:
+        stage = st.name
+        for item in st.items(spec, infos.__getitem__):
             store.start_item(man.name, spec.name, stage, item)
-            call = StageCall(job=man.name, root=str(man.output), material=mdict, stage=stage, item=item).to_dict()
+            call = StageCall(job=man.name, root=str(man.output), spec=spec, stage=stage, item=item)
             try:
                 res = run_stage(call)
             except Exception as exc:  # noqa: BLE001 - recorded like the scheduler records it

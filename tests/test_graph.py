@@ -9,22 +9,14 @@ import numpy as np
 import pytest
 
 from workers import graph
+from workers.arrays import decode_array, encode_array
 from workers.errors import GraphError
-from workers.graph import (
-    EvalContext,
-    decode_array,
-    encode_array,
-    evaluate,
-    load,
-    new_material,
-    register_node,
-    save,
-    set_param,
-)
+from workers.graph import evaluate, load, new_material, save, set_param
+from workers.nodes import EvalContext, NodeType, gaussian_blur, register_node
 
 
 @register_node
-class _StripesNode:
+class _StripesNode(NodeType):
     """Test-only generator: vertical sine stripes whose period (working-size px) follows the pattern scale."""
 
     name = "test_stripes"
@@ -128,7 +120,7 @@ def test_blur_and_pattern_follow_scale():
     expected = np.exp(-0.5 * (2 * np.pi * 2.0 / 8.0) ** 2)  # Gaussian attenuation of a sine
     assert c1 == pytest.approx(expected, rel=0.05)
     ctx = EvalContext(width=128, height=4, scale=2.0)
-    unscaled = graph.gaussian_blur(_StripesNode().evaluate({"period": 8.0}, {}, ctx, "s"), 2.0)
+    unscaled = gaussian_blur(_StripesNode().evaluate({"period": 8.0}, {}, ctx, "s"), 2.0)
     assert stripe_contrast(unscaled) > c2 + 0.2
 
 

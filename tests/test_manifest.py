@@ -27,7 +27,9 @@ folder = "maps"
 albedo = "brick_diff.jpg"
 normal = { file = "brick_nor.jpg", convention = "directx" }
 roughness = "brick_arm.jpg"
-decompose = { mode = "scribbles", scribbles = "brick_scribble.png", children = { "1" = { method = "instances" }, "0" = { layers = 2, scribbles = "mortar.png" } } }
+decompose.mode = "scribbles"
+decompose.scribbles = "brick_scribble.png"
+decompose.children = { "1" = { method = "instances" }, "0" = { layers = 2, scribbles = "mortar.png" } }
 seed = 7
 
 [[materials]]

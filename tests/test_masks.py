@@ -17,12 +17,21 @@ from pptbf_db.build import render_and_describe
 from pptbf_db.descriptor import DescriptorConfig, fit_pca
 from pptbf_db.index import PPTBFIndex
 from workers import graph
+from workers.assemble import add_instances_node, add_mask_node
 from workers.errors import GraphError, InputError
-from workers.mask_opt import (DISCRETE_VALUES, Budget, ContinuousSpace, OptSettings, explore, optimise,
-                              structure_sweep)
-from workers.masks import (MaskFit, MaskFitConfig, MaskLoss, add_instances_node, add_mask_node, best_shift_iou,
-                           downsample_mask, fit_inpainted_mask, fit_pptbf_mask, instance_shares,
-                           realisation_distance, sample_instances)
+from workers.lattice import analyse_lattice
+from workers.mask_opt import DISCRETE_VALUES, Budget, ContinuousSpace, OptSettings, explore, optimise, structure_sweep
+from workers.masks import (
+    MaskFit,
+    MaskFitConfig,
+    MaskLoss,
+    best_shift_iou,
+    downsample_mask,
+    fit_inpainted_mask,
+    fit_pptbf_mask,
+    realisation_distance,
+)
+from workers.nodes.instances import instance_shares, sample_instances
 
 from .conftest import real_material_files
 
@@ -38,7 +47,7 @@ def tiny_index() -> PPTBFIndex:
     checked on real masks in tests/test_layout_fit.py and bench/masks.py)."""
     cfg = DescriptorConfig(dim=32, extractor="random")
     params = pp.sample_params(np.random.default_rng(0), 60, ref_width=RES)
-    raw, white, _ = render_and_describe(params, RES, cfg)
+    raw, white, _ = render_and_describe(params, RES, cfg, analyse_lattice)
     pca = fit_pca(raw, cfg)
     return PPTBFIndex(params, pca.transform(raw), pca, cfg, RES, white)
 

@@ -6,8 +6,7 @@ import pytest
 from scipy import ndimage
 
 from workers.errors import InputError
-from workers.matting import (MattingConfig, decode_scribbles, feature_maps, knn_laplacian, matte,
-                             pixel_features)
+from workers.matting import MattingConfig, decode_scribbles, feature_maps, knn_laplacian, matte, pixel_features
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

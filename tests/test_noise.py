@@ -11,8 +11,16 @@ from tests.conftest import real_material_files
 from workers import graph
 from workers.errors import GraphError, InputError
 from workers.maps import read_image, resize_image, srgb_to_linear
-from workers.noise import (NoiseConfig, NoiseModel, erode_mask, expected_psd, fit_noise, noise_params,
-                           synthesize, synthesize_layers)
+from workers.noise import (
+    NoiseConfig,
+    NoiseModel,
+    erode_mask,
+    expected_psd,
+    fit_noise,
+    noise_params,
+    synthesize,
+    synthesize_layers,
+)
 
 BIN = 1.0 / 128  # radial bin width in cycles per pixel
 
@@ -116,8 +124,9 @@ def test_expected_psd_and_scale(synthetic):
 
 def test_white_noise_variance_exact():
     """The complex white-noise draw gives unit variance after irfft2 for even and odd sizes."""
-    from workers.noise import _white
     import scipy.fft as sfft
+
+    from workers.noise import _white
 
     for h, w in ((128, 128), (97, 131), (64, 200)):
         z = _white(np.random.default_rng(0), 4, h, w)
@@ -395,7 +404,7 @@ def test_gabor_fit_recovers_oriented_spectrum():
 
 def test_node_formula_with_filters(stone):
     """O = matched + sum_k (blur(a_k L_k + b_k; sigma_k * scale) - L_k) + (c-1) base + d, per-channel values too."""
-    from workers.graph import EvalContext, gaussian_blur
+    from workers.nodes import EvalContext, gaussian_blur
 
     model = fit_noise(stone, None)
     filters = [{"a": 0.5, "b": 0.0, "sigma": 0.0}, {"a": [1.2, 1.0, 0.8], "b": 0.01, "sigma": [1.0, 2.0, 1.0]},

@@ -10,7 +10,8 @@ from scipy import ndimage
 from service.pipeline import fit_region
 from workers import graph as G
 from workers import noise as N
-from workers.actors import MaskFitter, Recomposer
+from workers.actors import MaskFitter
+from workers.assemble import build_material
 from workers.maps import Material
 from workers.masks import MaskFitConfig
 from workers.tree import MaskNode, root_node
@@ -49,7 +50,7 @@ def _procedural(n: int, fitter: MaskFitter) -> tuple[G.ProceduralMaterial, np.nd
         fits[c.id] = {"fit": fit.to_dict()}
     noises = {(c.id, "albedo"): N.fit_noise(albedo, c.mask).to_params() for c in tree.children}
     mat = Material(albedo=albedo, name=f"layers{n}")
-    proc = Recomposer().build(mat, tree, noises, fits, seed=0)
+    proc = build_material(mat, tree, noises, fits, seed=0)
     return proc, np.bincount(lab.ravel(), minlength=n) / lab.size
 
 

@@ -9,7 +9,7 @@ from scipy import ndimage
 from workers import graph as G
 from workers.errors import GraphError
 from workers.instances import piece_labels
-from workers.masks import sample_instances
+from workers.nodes.instances import sample_instances
 from workers.pieces import PieceStats, kind_piece_labels, piece_residual
 
 N = 192

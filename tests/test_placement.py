@@ -57,7 +57,8 @@ def test_manifest_placement_options_are_validated(tmp_path):
     doc["job"].update(gpu_wait_s=30, recompose_cpus=3)
     doc["materials"][0]["recompose"]["device"] = "cuda"
     man = validate(doc, root=tmp_path)
-    assert (man.gpu_wait_s, man.recompose_cpus, man.materials[0].recompose["device"]) == (30.0, 3, "cuda")
+    device = man.materials[0].stage_options("recompose")["device"]
+    assert (man.gpu_wait_s, man.recompose_cpus, device) == (30.0, 3, "cuda")
 
 
 # ----------------------------------------------------------------------------- on a multi-node cluster

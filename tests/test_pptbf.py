@@ -1,7 +1,6 @@
 """PPTBF generator: parameter space, hash/noise, tilings, point process, evaluation, thresholding, torch port."""
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 

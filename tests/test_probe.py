@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from service.cli import main
+from service.commands.mask import fit_document
 from tests.conftest import small_material
 from workers.maps import write_image
 
@@ -22,7 +23,6 @@ def _mask(folder: Path, arr: np.ndarray, name: str = "mask.png") -> Path:
 
 def _fit_json(folder: Path, params) -> Path:
     """A mask fit file as `mask fit` writes it, with `params` (None: the key removed) as the fit's vector."""
-    from service.mask_cmd import fit_document
     from workers import lattice as L
     from workers.masks import MaskFit
 
@@ -100,8 +100,8 @@ CASES = {
         lambda t: ["render", str(_material_doc(t, lambda d: _set(d, ("maps", 0, "node"), "ghost"))), "--size", "8x8",
                    "--out", str(t / "o")], 2, ["ghost"]),
     "render: a node input is a cycle": (
-        lambda t: ["render", str(_material_doc(t, lambda d: _set(d, ("nodes", 3, "inputs", "input"), "height"))), "--size",
-                   "8x8", "--out", str(t / "o")], 2, ["height"]),
+        lambda t: ["render", str(_material_doc(t, lambda d: _set(d, ("nodes", 3, "inputs", "input"), "height"))),
+                   "--size", "8x8", "--out", str(t / "o")], 2, ["height"]),
     "render: unknown node type": (
         lambda t: ["render", str(_material_doc(t, lambda d: _set(d, ("nodes", 0, "type"), "laser"))), "--size", "8x8",
                    "--out", str(t / "o")], 2, ["laser"]),
@@ -189,7 +189,8 @@ CASES = {
     "run: working_size 3": (lambda t: ["run", str(_manifest(t, {"working_size": 3}))], 2, ["working_size"]),
     "run: two materials of one name": (
         lambda t: ["run", str(_manifest(t, None, materials=[{"name": "m", "albedo": "a.png"},
-                                                             {"name": "m", "albedo": "a.png"}]))], 2, ["name used twice"]),
+                                                             {"name": "m", "albedo": "a.png"}]))],
+        2, ["name used twice"]),
     "run: material name '../x'": (lambda t: ["run", str(_manifest(t, {"name": "../x"}))], 2, ["name"]),
     "run: recompose device 'tpu'": (
         lambda t: ["run", str(_manifest(t, {"recompose": {"device": "tpu"}}))], 2, ["recompose.device"]),

@@ -9,38 +9,38 @@ import torch
 
 from tests.conftest import real_material_files
 from workers import graph as G
+from workers.assemble import assemble_material
 from workers.errors import GraphError, InputError
-from workers.graph import EvalContext, gaussian_blur, register_node
 from workers.height import height_to_normal
-from workers.recompose import (RecomposeConfig, RecomposeLoss, TorchGraph, assemble_material, blur_t,
-                               height_to_normal_t, optimise, torch_maps)
+from workers.nodes import EvalContext, gaussian_blur, register_node
+from workers.nodes.stack import FilterStack, Layers
+from workers.recompose import RecomposeConfig, RecomposeLoss, optimise, torch_maps
+from workers.torch_graph import TorchGraph, blur_t, height_to_normal_t
 from workers.tree import MaskNode, root_node
 
 
 @register_node
-class WhiteStackNode:
-    """Test-only filter-stack generator: two broadband (white) noise layers + base colour, same filter contract
-    as the ``noise`` node, so a_k and sigma_k are separately identifiable (exercises the probing path)."""
+class WhiteStackNode(FilterStack):
+    """Test-only filter-stack generator: broadband (white) noise layers + base colour, so a_k and sigma_k are
+    separately identifiable; a second filter stack besides ``noise`` (the filter contract is the base class's)."""
 
     name = "test_white_stack"
-    inputs: tuple[str, ...] = ()
 
-    def validate(self, params: dict) -> None:
-        if not isinstance(params.get("filters"), list):
-            raise GraphError("test_white_stack.filters must be a list")
+    def parse(self, params: dict) -> dict:
+        return params
 
-    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
-        base = np.asarray(params["base"], dtype=np.float32)
-        c = base.size
+    def channels(self, p: dict) -> int:
+        return len(p["base"])
+
+    def layer_count(self, p: dict) -> int:
+        return len(p["amps"])
+
+    def synthesize(self, p, params, ctx: EvalContext, node_id, with_layers):
+        base = np.asarray(p["base"], dtype=np.float32)
         rng = ctx.rng(node_id)
-        layers = [rng.standard_normal((ctx.height, ctx.width, c)).astype(np.float32) * amp
-                  for amp in params["amps"]]
-        out = base + sum(layers)
-        for f, lay in zip(params["filters"], layers):
-            a, b, s = np.asarray(f["a"], np.float32), np.asarray(f["b"], np.float32), float(f["sigma"])
-            out = out + gaussian_blur(a * lay + b, s * ctx.px_scale) - lay
-        out = out + (np.asarray(params["c"], np.float32) - 1.0) * base + np.asarray(params["d"], np.float32)
-        return out.astype(np.float32)
+        layers = [rng.standard_normal((ctx.height, ctx.width, base.size)).astype(np.float32) * amp
+                  for amp in p["amps"]]
+        return Layers(matched=base + sum(layers), base=base, layers=layers)
 
 
 def _pptbf_params(seed: int, ref_width: int) -> list[float]:
@@ -51,8 +51,6 @@ def _pptbf_params(seed: int, ref_width: int) -> list[float]:
 
 def _two_leaf_tree(proc: G.ProceduralMaterial, size: int, seed: int = 3) -> tuple[MaskNode, dict]:
     """Root split by one PPTBF mask node and its complement (level a=-1, d=1)."""
-    import workers.masks  # noqa: F401  (registers the pptbf node)
-
     proc.add("mask_a", "pptbf", {"params": _pptbf_params(seed, size), "ref_width": size, "complement": False})
     proc.add("mask_b", "level", {"a": -1.0, "d": 1.0, "clamp": True}, input="mask_a")
     ctx = EvalContext(size, size, 1.0, proc.seed, (size, size))
@@ -292,7 +290,8 @@ def test_loss_size_follows_the_maps_and_maps_enter_as_seen():
     target = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in G.evaluate(proc, 32, 32, seed=4).items()}
     sizes = {}
     for ls in (None, 0, 64):
-        loss = RecomposeLoss(target, RecomposeConfig(loss_size=ls, features="random", light_pool=2), torch.device("cpu"))
+        cfg = RecomposeConfig(loss_size=ls, features="random", light_pool=2)
+        loss = RecomposeLoss(target, cfg, torch.device("cpu"))
         sizes[ls] = [tuple(loss._small(torch.zeros(1, 1, n, n // 2)).shape[-2:]) for n in (512, 200, 96)]
     assert sizes[None] == [(256, 128), (128, 64), (96, 48)]
     assert sizes[0] == [(512, 256), (200, 100), (96, 48)] and sizes[64] == [(64, 32), (64, 32), (64, 32)]

@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from workers.render import (LIGHT_INTENSITY, PLANE_WIDTH, paper_lights, plane_positions, preview_image,
-                            random_lights, render, tonemap)
+from workers.render import (
+    LIGHT_INTENSITY,
+    PLANE_WIDTH,
+    paper_lights,
+    plane_positions,
+    preview_image,
+    random_lights,
+    render,
+    tonemap,
+)
 
 
 def _flat(h: int = 32, w: int = 32, albedo: float = 0.5, rough: float = 0.5):

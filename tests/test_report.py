@@ -16,6 +16,7 @@ from service.scheduler import Scheduler
 from service.store import Store
 from tests.conftest import real_material_files
 from workers import graph
+from workers.edit import apply_edits, suggest_edit
 
 pytestmark = pytest.mark.ray
 CHROMIUM = Path("/usr/bin/chromium")
@@ -121,8 +122,6 @@ def test_report_shows_metrics_and_the_parameter_edit(small_job, tmp_path):
     for ref in _refs(tmp_path / "r" / f"{GOOD}.html").links:  # relative links from another folder still work
         assert (tmp_path / "r" / ref).is_file(), ref
     # the suggested edit really brightens the albedo of the job's own graph
-    from service.export_cmd import apply_edits, suggest_edit
-
     mat = graph.load(small_job / GOOD / "material.json")
     edit = suggest_edit(mat, 0.1)
     assert edit is not None and edit.path.endswith(".d")

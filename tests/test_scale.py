@@ -30,8 +30,6 @@ def _input_period() -> float:
 
 def _material(input_size) -> G.ProceduralMaterial:
     """A material whose one PPTBF node lies on the lattice of the input downsampled to the working size."""
-    import workers.masks  # noqa: F401  (registers the pptbf node)
-
     work = downsample_mask(_running_bond(INPUT, PERIOD), WORKING, WORKING)
     lat = L.analyse_lattice(work)
     assert lat.kind == "2d" and lat.period == pytest.approx(_input_period() * WORKING / INPUT, rel=0.05)
@@ -62,7 +60,8 @@ def test_scale_one_is_the_input_pattern_size(tmp_path):
     assert _period(loaded, 2 * INPUT) == pytest.approx(_input_period(), rel=0.05)
     assert _period(loaded, INPUT, scale=0.5) == pytest.approx(_input_period() / 2, rel=0.05)
     # working_scale draws the pattern as it was at the working size
-    assert _period(loaded, WORKING, scale=loaded.working_scale) == pytest.approx(_input_period() * WORKING / INPUT, rel=0.05)
+    working_period = _input_period() * WORKING / INPUT
+    assert _period(loaded, WORKING, scale=loaded.working_scale) == pytest.approx(working_period, rel=0.05)
 
 
 def test_old_files_keep_their_meaning(tmp_path):
@@ -70,7 +69,8 @@ def test_old_files_keep_their_meaning(tmp_path):
     doc["format"] = "proceduralize/1"
     old = G.from_json(json.loads(json.dumps(doc)))
     assert old.input_size is None and old.pattern_unit == 1.0
-    assert _period(old, INPUT) == pytest.approx(_input_period() * WORKING / INPUT, rel=0.05)   # the working size's pattern
+    # the working size's pattern
+    assert _period(old, INPUT) == pytest.approx(_input_period() * WORKING / INPUT, rel=0.05)
     bad = dict(doc, input_size=[INPUT, INPUT])
     with pytest.raises(GraphError, match="input_size"):
         G.from_json(bad)

@@ -1,7 +1,7 @@
 """The batch scheduler on a real local Ray (2 CPUs) and a real SQLite store: no mocks.
 
-Jobs run the fast stage subset (load + decompose at 64 px; noise too when workers.noise is importable and
-PROCEDURALIZE_TEST_NOISE=1) so the file stays well under a minute; the whole pipeline runs in the slow test.
+Most jobs run the fast stage subset (load + decompose at 64 px); the whole pipeline runs with tiny budgets in
+the four-material test and in the split-material tests.
 """
 from __future__ import annotations
 
@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from workers.errors import ManifestError
-
+from service.commands.status import job_state
 from service.manifest import load_manifest, validate
-from service.pipeline import STAGES
 from service.scheduler import Scheduler
+from service.stages import STAGE_NAMES
 from service.store import Store
 from tests.conftest import REAL_MATERIALS, real_material_files
+from workers.errors import ManifestError
 
 pytestmark = pytest.mark.ray
 REPO = Path(__file__).resolve().parents[1]
@@ -52,7 +52,7 @@ def _run(doc: dict, root: Path, **kw):
 
 
 def test_four_materials_complete_and_every_stage_is_recorded(ray_session, materials_dir, tmp_path):
-    """The whole available pipeline (every stage whose module exists), tiny budgets; one material's
+    """The whole pipeline (every stage), tiny budgets; one material's
     recomposition actor dies mid-stage (os._exit once): the driver replaces the actor and retries."""
     names = list(REAL_MATERIALS)[:4]
     crashed = names[2]
@@ -66,7 +66,7 @@ def test_four_materials_complete_and_every_stage_is_recorded(ray_session, materi
     assert report.materials == {n: "done" for n in names}
     with Store(man.database) as s:
         assert s.job("four")["status"] == "done"
-        ran = [st for st in STAGES if s.items("four", names[0], st)
+        ran = [st for st in STAGE_NAMES if s.items("four", names[0], st)
                and s.items("four", names[0], st)[0]["status"] != "unavailable"]
         assert ran[:2] == FAST
         for n in names:
@@ -171,7 +171,8 @@ def test_killed_driver_resumes_without_recomputing_finished_stages(ray_session, 
                 with Store(db) as s:
                     loads = [s.item("resume", n, "load") for n in names]
                     decs = [s.item("resume", n, "decompose") for n in names]
-                if all(r and r["status"] == "done" for r in loads) and all(r and r["status"] == "running" for r in decs):
+                if all(r and r["status"] == "done" for r in loads) and \
+                        all(r and r["status"] == "running" for r in decs):
                     break
             assert proc.poll() is None, proc.stdout.read().decode()
             time.sleep(0.3)
@@ -180,10 +181,8 @@ def test_killed_driver_resumes_without_recomputing_finished_stages(ray_session, 
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
-    from service.cli import _job_state
-
     with Store(db) as s:
-        assert _job_state(s.job("resume")).startswith("interrupted")
+        assert job_state(s.job("resume")).startswith("interrupted")
     man = load_manifest(tmp_path / "fast.json")
     with Store(man.database) as store:
         sched = Scheduler(man, store=store, progress=False)
@@ -230,26 +229,6 @@ def test_two_jobs_at_once_share_one_database_safely(ray_session, materials_dir, 
             rows = s.items(f"job{k}")
             assert len(rows) == 4 and all(r["status"] == "done" and r["executions"] == 1 for r in rows)
             assert len({a["path"] for a in s.artefacts(f"job{k}")}) == len(s.artefacts(f"job{k}"))
-
-
-def test_requested_stage_with_missing_module_is_reported(ray_session, materials_dir, tmp_path, monkeypatch):
-    from service import pipeline
-
-    real = pipeline.required_modules
-    # a stage whose module is not written/installed: the lookup itself is real (importlib.util.find_spec)
-    monkeypatch.setattr(pipeline, "required_modules", lambda stage, m: real(stage, m) + (
-        ["workers.not_written_yet"] if stage == "decompose" else []))
-    man, report = _run(_doc("missing", [_material("metal_plate_02")], stages=["load", "decompose"]), tmp_path)
-    assert report.exit_code == 1
-    assert "workers.not_written_yet" in report.errors["metal_plate_02"]
-    with Store(man.database) as s:
-        assert s.item("missing", "metal_plate_02", "load")["status"] == "done"
-        assert s.item("missing", "metal_plate_02", "decompose")["status"] == "failed"
-    # with no explicit stage list the stage is recorded as unavailable (not silently skipped)
-    man, report = _run(_doc("default", [_material("metal_plate_02")], stages=None), tmp_path)
-    with Store(man.database) as s:
-        row = s.item("default", "metal_plate_02", "decompose")
-        assert row["status"] == "unavailable" and "workers.not_written_yet" in row["error"]
 
 
 def test_cli_run_status_results_exit_codes(ray_session, materials_dir, tmp_path, capsys, monkeypatch):
@@ -300,8 +279,9 @@ def tiny_pptbf_db(ray_session, tmp_path_factory):
     pytest.importorskip("pptbf_db.build")
     if _bundled_db() is not None:
         return _bundled_db()
-    from pptbf_db.build import BuildConfig, build_database
+    from pptbf_db.build import BuildConfig
     from pptbf_db.descriptor import DescriptorConfig
+    from service.db_build import build_database
 
     folder = tmp_path_factory.mktemp("pptbf") / "db"
     build_database(folder, BuildConfig(size=32, resolution=48, seed=3, chunk=16, descriptor=DescriptorConfig(dim=8)),
@@ -311,7 +291,8 @@ def tiny_pptbf_db(ray_session, tmp_path_factory):
 
 @_SLOW_WITHOUT_BUNDLED_DB
 def test_split_material_runs_masks_on_actors_and_renders(ray_session, materials_dir, tmp_path, tiny_pptbf_db):
-    """Automatic 3-layer split: 2 PPTBF fits on one actor (index loaded once), recomposition, maps at 2 sizes x 2 seeds."""
+    """Automatic 3-layer split: 2 PPTBF fits on one actor (index loaded once), recomposition, maps at 2 sizes x 2
+    seeds."""
     pytest.importorskip("workers.decompose")
     doc = _doc("split", [_material("castle_brick_broken_06")], stages=None,
                pptbf_database=str(tiny_pptbf_db))
@@ -371,7 +352,8 @@ def test_sub_layer_mask_by_the_inpainting_variant(ray_session, materials_dir, tm
     nested tree recomposes (tree ids with dots become graph ids without) and evaluates."""
     doc = _doc("inp", [_material("castle_brick_broken_06")],
                stages=["load", "decompose", "noise", "masks", "recompose"], pptbf_database=str(tiny_pptbf_db))
-    doc["defaults"].update(decompose={"mode": "auto", "layers": 2, "structure": False, "children": {"0": {"layers": 2}}},
+    doc["defaults"].update(decompose={"mode": "auto", "layers": 2, "structure": False,
+                                      "children": {"0": {"layers": 2}}},
                            masks={"max_evals": 8, "rounds": 1, "time_budget_s": 10.0, "incomplete": "inpaint"},
                            recompose={"iterations": 2})
     man, report = _run(doc, tmp_path)

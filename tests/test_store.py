@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from pptbf_db.errors import DatabaseError
 from service.store import SCHEMA_VERSION, Store, file_checksum
-from workers.errors import DatabaseError
 
 
 def _artefact(root: Path, rel: str, data: bytes) -> dict:

@@ -270,8 +270,8 @@ def test_compressed_arrays_are_bounded_before_inflating():
     import resource
     import zlib
 
+    from workers.arrays import decode_array, encode_array
     from workers.errors import GraphError
-    from workers.graph import decode_array, encode_array
 
     raw = zlib.compress(b"\0" * (805 * 2**20), 9)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -45,8 +45,8 @@ import numpy as np
 
 from .errors import InputError, ManifestError
 from .instances import InstanceConfig, InstanceSplit, split_instances
-from .matting import MAX_LAYERS, FeatureMaps, MattingConfig, feature_maps, matte
 from .lattice import analyse_lattice
+from .matting import MAX_LAYERS, FeatureMaps, MattingConfig, feature_maps, matte
 from .structure import find_structure, layout_rank
 from .tree import MaskNode, root_node
 

@@ -1,9 +1,9 @@
-"""User-facing exception types: each message names the file (or field) and the fix."""
+"""User-facing exception types of the workers: each message names the file (or field) and the fix.
+
+The base class `ProceduralizeError` (and `DatabaseError`) live in `pptbf_db.errors`."""
 from __future__ import annotations
 
-
-class ProceduralizeError(Exception):
-    """Base class of every error a user can act on."""
+from pptbf_db.errors import ProceduralizeError
 
 
 class InputError(ProceduralizeError):
@@ -22,7 +22,3 @@ class ManifestError(ProceduralizeError):
 
 class GraphError(ProceduralizeError):
     """A procedural material file is malformed or of an unsupported version."""
-
-
-class DatabaseError(ProceduralizeError):
-    """A PPTBF database folder is missing, incomplete or of another version."""

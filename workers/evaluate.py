@@ -1,4 +1,4 @@
-"""Quality scorecard of one material: procedural output vs the input, next to three baselines (issue 9 part 1).
+"""Quality scorecard of one material: procedural output vs the input, next to three baselines.
 
 Protocol (fair by construction; every candidate is compared against the same reference at the same size):
 
@@ -16,7 +16,7 @@ Protocol (fair by construction; every candidate is compared against the same ref
   on a plane as wide as the half (``PLANE_WIDTH * (W/2) / W``, so a pixel covers the same area as in a render
   of the whole map), tonemapped to sRGB, metrics averaged over the lights.
 
-* **gram** = the pretrained VGG-19 Gram distance (workers.features: relu1_1..relu4_1, mean relative Frobenius
+* **gram** = the pretrained VGG-19 Gram distance (pptbf_db.features: relu1_1..relu4_1, mean relative Frobenius
   distance) to the reference, the paper's texture statistic; unlike the other metrics it sees structure
   (bricks, seams) that random-phase noise loses. Maps are shown to the network as a person sees them: albedo in
   sRGB, normals as (n + 1) / 2, height scaled by the reference's range, roughness / metallic as they are;
@@ -177,7 +177,7 @@ def vgg_grams(images: np.ndarray) -> list:
     """VGG-19 Gram matrices of images (N, H, W, C in [0, 1], C = 1 or 3), per layer (N, c, c); no gradients."""
     import torch
 
-    from workers.features import GramExtractor
+    from pptbf_db.features import GramExtractor
 
     x = torch.from_numpy(np.ascontiguousarray(np.asarray(images, np.float32).transpose(0, 3, 1, 2)))
     ex = GramExtractor.vgg19(x.shape[1])
@@ -187,7 +187,7 @@ def vgg_grams(images: np.ndarray) -> list:
 
 def gram_distance_images(ref: np.ndarray, cand: np.ndarray) -> float:
     """Mean over images of the VGG-19 Gram distance of cand[i] to ref[i] (N, H, W, C arrays)."""
-    from workers.features import gram_distance
+    from pptbf_db.features import gram_distance
 
     return float(gram_distance(vgg_grams(cand), vgg_grams(ref)).mean())
 

@@ -25,7 +25,8 @@ class ExportedFiles:
     materialx: Path | None
 
 
-def pack_orm(roughness: np.ndarray, metallic: np.ndarray | None = None, occlusion: np.ndarray | None = None) -> np.ndarray:
+def pack_orm(roughness: np.ndarray, metallic: np.ndarray | None = None,
+             occlusion: np.ndarray | None = None) -> np.ndarray:
     """glTF occlusion-roughness-metallic texture: R = occlusion (1), G = roughness, B = metallic (0)."""
     r = np.asarray(roughness, dtype=np.float32)
     r = r[..., 0] if r.ndim == 3 else r

@@ -19,315 +19,34 @@ Scale semantics: ``evaluate(mat, W, H, scale=1)`` draws the pattern at the input
 scale 1 = the working size's pattern. Inside the graph, nodes see ``EvalContext.px_scale``: output pixels
 per working-size pixel of pattern.
 
-Nodes are evaluated lazily from the map outputs. Arrays inside params are stored compactly with
-:func:`encode_array` (base64 float16/float32/uint8), never pickled, and never hold input pixels.
-Stages register new node types with :func:`register_node`.
+Nodes are evaluated lazily from the map outputs. Node types (their parameters, numpy and torch forms) live in
+:mod:`workers.nodes`, one module per family. Arrays inside params are stored compactly
+(:mod:`workers.arrays`: base64 float16/float32/uint8), never pickled, and never hold input pixels.
 """
 from __future__ import annotations
 
-import base64
 import copy
 import json
 import re
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from .errors import GraphError
+from .height import height_to_normal
+from .nodes import NODE_TYPES, EvalContext, as3
 
 FORMAT = "proceduralize/1.1"   # 1.1 adds "input_size" (scale 1 = the input's pattern size)
-NORMALISE_EPS = 1e-6   # floor of the mask sum a normalised blend divides by
 SUPPORTED_FORMATS = ("proceduralize/1", FORMAT)
-#: the most bytes one encoded array of a material file may inflate to (real ones are a few KB)
-MAX_ARRAY_BYTES = 16 * 2**20
 #: pattern scales ``evaluate`` accepts (1/64 .. 64): the scale multiplies every spatial size in the graph
 MIN_SCALE, MAX_SCALE = 1.0 / 64.0, 64.0
-#: the largest blur sigma (working-size pixels) a file may hold
-MAX_SIGMA = 1e4
 #: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
 MAP_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 #: channel counts the known maps may have (renderers, exporters and PNG writers rely on them); other names any
 MAP_CHANNELS: dict[str, tuple[int, ...]] = {"albedo": (1, 3), "normal": (3,), "roughness": (1,), "height": (1,),
                                             "metallic": (1,)}
-
-
-# ----------------------------------------------------------------------------- arrays
-
-
-def encode_array(a: np.ndarray, dtype: str = "float16") -> dict:
-    """Encode an array as a small JSON object (zlib-compressed base64 of a fixed dtype)."""
-    arr = np.ascontiguousarray(np.asarray(a), dtype=np.dtype(dtype))
-    return {
-        "__array__": True,
-        "dtype": str(arr.dtype),
-        "shape": list(arr.shape),
-        "data": base64.b64encode(zlib.compress(arr.tobytes(), 6)).decode("ascii"),
-    }
-
-
-def decode_array(obj: Any) -> np.ndarray:
-    """Decode an object written by :func:`encode_array` (plain lists are accepted too) to float32/int. The
-    declared size is checked against MAX_ARRAY_BYTES before anything is inflated, and inflation stops there."""
-    if isinstance(obj, dict) and obj.get("__array__"):
-        try:
-            dtype = np.dtype(obj["dtype"])
-            shape = [int(n) for n in obj["shape"]]
-            if dtype.kind not in "fiub" or any(n < 0 for n in shape) or len(shape) > 8:
-                raise ValueError(f"dtype {dtype} / shape {shape} not allowed")
-            nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
-            if nbytes > MAX_ARRAY_BYTES:
-                raise ValueError(f"declares {nbytes / 2**20:.0f} MiB, more than the {MAX_ARRAY_BYTES >> 20} MiB "
-                                 "an array of a material file may hold")
-            z = zlib.decompressobj()
-            raw = z.decompress(base64.b64decode(obj["data"]), nbytes + 1)
-            if len(raw) != nbytes or z.unconsumed_tail:
-                raise ValueError(f"data does not match its declared shape {shape} ({dtype})")
-            arr = np.frombuffer(raw, dtype=dtype).reshape(shape)
-        except Exception as exc:  # noqa: BLE001 - any corruption is a GraphError
-            raise GraphError(f"corrupt array in material file: {exc}") from None
-        return arr.astype(np.float32) if arr.dtype.kind == "f" else arr.copy()
-    return np.asarray(obj, dtype=np.float32)
-
-
-# ----------------------------------------------------------------------------- evaluation context
-
-
-@dataclass
-class EvalContext:
-    """What every node needs to render itself: output extent, pattern scale and randomness."""
-
-    width: int
-    height: int
-    scale: float = 1.0
-    seed: int = 0
-    working_size: tuple[int, int] = (512, 512)
-    cache: dict = field(default_factory=dict)
-
-    def rng(self, node_id: str, stream: int = 0) -> np.random.Generator:
-        """A generator that depends only on (seed, node id, stream): deterministic, independent per node."""
-        key = zlib.crc32(node_id.encode("utf-8"))
-        return np.random.default_rng(np.random.SeedSequence([int(self.seed) & 0xFFFFFFFF, key, stream]))
-
-    def node_seed(self, node_id: str) -> int:
-        """An integer seed for node ``node_id`` derived from the material seed."""
-        return int(self.rng(node_id, 99).integers(0, 2**31 - 1))
-
-    @property
-    def px_scale(self) -> float:
-        """Output pixels per working-size pixel of pattern (scale=2 -> features twice as many pixels)."""
-        return float(self.scale)
-
-
-class NodeType(Protocol):
-    """A node type: validates its params and renders an HxWxC float32 array."""
-
-    name: str
-    inputs: tuple[str, ...]
-
-    def validate(self, params: dict) -> None: ...
-
-    def evaluate(self, params: dict, inputs: dict[str, np.ndarray], ctx: EvalContext, node_id: str) -> np.ndarray: ...
-
-
-NODE_TYPES: dict[str, NodeType] = {}
-
-
-def register_node(cls: type) -> type:
-    """Class decorator: register a node type (instantiated once) under ``cls.name``."""
-    inst = cls()
-    if not getattr(inst, "name", None):
-        raise TypeError(f"node type {cls.__name__} has no name")
-    NODE_TYPES[inst.name] = inst
-    return cls
-
-
-def _ensure_builtin_types_loaded() -> None:
-    """Import stage modules that register node types (kept lazy to avoid import cycles)."""
-    import importlib
-
-    for mod in ("workers.noise", "workers.masks", "workers.pieces"):
-        try:
-            importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name != mod:
-                raise
-
-
-def _numbers(value: Any, field: str) -> np.ndarray:
-    """A parameter as a 1-D float array; GraphError naming `field` when it is not numbers (a string, a dict)."""
-    try:
-        return np.atleast_1d(np.asarray(value, dtype=np.float64))
-    except (TypeError, ValueError, OverflowError):
-        raise GraphError(f"{field} must be a number or a list of numbers, got {value!r}") from None
-
-
-def _as3(a: np.ndarray) -> np.ndarray:
-    """View a 2-D array as HxWx1."""
-    return a[..., None] if a.ndim == 2 else a
-
-
-# ----------------------------------------------------------------------------- built-in nodes
-
-
-@register_node
-class ConstantNode:
-    """A constant value (scalar or per channel) over the whole map."""
-
-    name = "constant"
-    inputs: tuple[str, ...] = ()
-
-    def validate(self, params: dict) -> None:
-        v = _numbers(params.get("value"), "constant.value")
-        if v.ndim != 1 or v.size == 0 or not np.all(np.isfinite(v)):
-            raise GraphError("constant.value must be a finite number or list of numbers")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        v = np.atleast_1d(np.asarray(params["value"], dtype=np.float32))
-        return np.broadcast_to(v, (ctx.height, ctx.width, v.size)).copy()
-
-
-@register_node
-class LevelNode:
-    """Affine level filter ``x * a + d`` (per channel or scalar a, d), optional clamp to [0,1]."""
-
-    name = "level"
-    inputs = ("input",)
-
-    def validate(self, params: dict) -> None:
-        for k in ("a", "d"):
-            v = _numbers(params.get(k, 1.0 if k == "a" else 0.0), f"level.{k}")
-            if not np.all(np.isfinite(v)):
-                raise GraphError(f"level.{k} must be finite")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        x = inputs["input"]
-        a = np.asarray(params.get("a", 1.0), dtype=np.float32)
-        d = np.asarray(params.get("d", 0.0), dtype=np.float32)
-        y = x * a + d
-        if params.get("clamp", False):
-            y = np.clip(y, 0.0, 1.0)
-        return y.astype(np.float32)
-
-
-def gaussian_blur(x: np.ndarray, sigma: float) -> np.ndarray:
-    """Periodic (wrap) Gaussian blur over the two spatial axes; sigma in output pixels."""
-    if sigma <= 1e-3:
-        return x
-    if sigma >= max(x.shape[0], x.shape[1]):  # the periodic blur is the mean to within exp(-2 pi^2) ~ 3e-9
-        return np.broadcast_to(x.mean(axis=(0, 1), keepdims=True), x.shape).astype(np.float32)
-    s = (sigma, sigma, 0) if x.ndim == 3 else (sigma, sigma)
-    return ndimage.gaussian_filter(x, s, mode="wrap").astype(np.float32)
-
-
-@register_node
-class BlurNode:
-    """Gaussian blur; sigma is in working-size pixels and follows the pattern scale."""
-
-    name = "blur"
-    inputs = ("input",)
-
-    def validate(self, params: dict) -> None:
-        s = params.get("sigma", 0.0)
-        if not isinstance(s, (int, float)) or isinstance(s, bool) or not np.isfinite(s) or not 0 <= s <= MAX_SIGMA:
-            raise GraphError(f"blur.sigma must be a number from 0 to {MAX_SIGMA:g}")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        return gaussian_blur(inputs["input"], float(params.get("sigma", 0.0)) * ctx.px_scale)
-
-
-@register_node
-class BlendNode:
-    """Mask blend. Inputs ``mask0, child0, mask1, child1, ...`` give ``sum_i blur(mask_i; sigma_i) * child_i``
-    (params ``sigmas``: per-mask blur in working-size pixels, default 0); with ``normalise: true`` that sum is
-    divided by ``sum_i blur(mask_i; sigma_i)``, so the blurred masks of a partition keep summing to 1 whatever
-    their sigmas (every pixel is one child's value, or a convex mix across a blurred edge). Inputs
-    ``mask, fg, bg`` give ``m*fg + (1-m)*bg`` with ``m = blur(mask; sigma)``."""
-
-    name = "blend"
-    inputs = ("*",)
-
-    def validate(self, params: dict) -> None:
-        sig = params.get("sigmas", [])
-        if not isinstance(sig, list) or any(not isinstance(s, (int, float)) or s < 0 for s in sig):
-            raise GraphError("blend.sigmas must be a list of numbers >= 0")
-        if not isinstance(params.get("normalise", False), bool):
-            raise GraphError("blend.normalise must be true or false")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        sig = list(params.get("sigmas", []))
-        if "mask" in inputs:
-            m = gaussian_blur(_as3(inputs["mask"])[..., :1], float(params.get("sigma", 0.0)) * ctx.px_scale)
-            return (m * inputs["fg"] + (1.0 - m) * inputs["bg"]).astype(np.float32)
-        i, out, total = 0, None, None
-        while f"mask{i}" in inputs:
-            s = float(sig[i]) if i < len(sig) else 0.0
-            m = gaussian_blur(_as3(inputs[f"mask{i}"])[..., :1], s * ctx.px_scale)
-            term = m * inputs[f"child{i}"]
-            out = term if out is None else out + term
-            total = m if total is None else total + m
-            i += 1
-        if out is None:
-            raise GraphError(f"blend node {node_id} has no inputs (need mask/fg/bg or mask0/child0...)")
-        if params.get("normalise", False):
-            out = out / np.maximum(total, NORMALISE_EPS)
-        return out.astype(np.float32)
-
-
-@register_node
-class ChannelNode:
-    """Pick channels ``channels`` (list of indices) of the input (e.g. one cluster of an instance map)."""
-
-    name = "channel"
-    inputs = ("input",)
-
-    def validate(self, params: dict) -> None:
-        ch = params.get("channels")
-        if not isinstance(ch, list) or not ch or not all(isinstance(c, int) and c >= 0 for c in ch):
-            raise GraphError("channel.channels must be a non-empty list of channel indices")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        x = inputs["input"]
-        if max(params["channels"]) >= x.shape[2]:
-            raise GraphError(f"channel node {node_id}: input has {x.shape[2]} channels")
-        return x[..., params["channels"]].astype(np.float32)
-
-
-@register_node
-class AddNode:
-    """Sum of all inputs (e.g. noise layers plus base colour)."""
-
-    name = "add"
-    inputs = ("*",)
-
-    def validate(self, params: dict) -> None:
-        pass
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        if not inputs:
-            raise GraphError(f"add node {node_id} has no inputs")
-        vals = [inputs[k] for k in sorted(inputs)]
-        out = vals[0].astype(np.float32).copy()
-        for v in vals[1:]:
-            out = out + v
-        return out
-
-
-@register_node
-class ClampNode:
-    """Clamp to [lo, hi] (default [0, 1])."""
-
-    name = "clamp"
-    inputs = ("input",)
-
-    def validate(self, params: dict) -> None:
-        pass
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        return np.clip(inputs["input"], params.get("lo", 0.0), params.get("hi", 1.0)).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- material
@@ -412,7 +131,6 @@ def _size_field(doc: dict, key: str, source: str) -> tuple[int, int] | None:
 
 def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     """Validate a parsed JSON document and build a :class:`ProceduralMaterial`."""
-    _ensure_builtin_types_loaded()
     if not isinstance(doc, dict):
         raise GraphError(f"{source}: top level must be a JSON object")
     fmt = doc.get("format")
@@ -562,7 +280,7 @@ def evaluate_node(mat: ProceduralMaterial, node_id: str, ctx: EvalContext) -> np
     if t is None:
         raise GraphError(f"node {node_id!r} has unknown type {n['type']!r}")
     inputs = {port: evaluate_node(mat, src, ctx) for port, src in n["inputs"].items()}
-    out = _as3(np.asarray(t.evaluate(n["params"], inputs, ctx, node_id), dtype=np.float32))
+    out = as3(np.asarray(t.evaluate(n["params"], inputs, ctx, node_id), dtype=np.float32))
     if out.shape[:2] != (ctx.height, ctx.width):
         raise GraphError(f"node {node_id!r} ({n['type']}) returned {out.shape[:2]}, expected {(ctx.height, ctx.width)}")
     ctx.cache[node_id] = out
@@ -599,8 +317,6 @@ def evaluate(
             out[m["name"]] = v
     for m in mat.maps:
         if "from_height" in m and (wanted is None or m["name"] in wanted):
-            from .height import height_to_normal
-
             h = out[m["from_height"]][..., 0]
             # scale zooms the relief with the pattern: slopes stay the same, so strength grows with px_scale
             out[m["name"]] = height_to_normal(h, strength=float(m.get("strength", 1.0)) * ctx.px_scale,
@@ -628,27 +344,33 @@ def set_param(mat: ProceduralMaterial, path: str, value: Any) -> None:
     if len(parts) < 2:
         raise GraphError(f"parameter path {path!r} must be node_id.param")
     node = mat.node(parts[0])
-    cur: Any = node["params"]
-    for p in parts[1:-1]:
-        if isinstance(cur, list):
-            cur = cur[int(p)]
-        elif isinstance(cur, dict) and p in cur:
-            cur = cur[p]
-        else:
-            raise GraphError(f"parameter path {path!r}: no {p!r} in node {parts[0]!r}")
-    last = parts[-1]
-    if isinstance(cur, list):
-        cur[int(last)] = value
-    elif isinstance(cur, dict):
-        if last not in cur and not last.startswith("_"):
-            raise GraphError(f"parameter path {path!r}: node {parts[0]!r} has no parameter {last!r} "
-                             f"(has: {sorted(cur)})")
-        cur[last] = value
     t = NODE_TYPES[node["type"]]
+    params = copy.deepcopy(node["params"])   # edited and checked aside: a refused edit changes nothing
+    cur: Any = params
     try:
-        t.validate(node["params"])
+        for p in parts[1:-1]:
+            if isinstance(cur, list):
+                cur = cur[int(p)]
+            elif isinstance(cur, dict) and p in cur:
+                cur = cur[p]
+            else:
+                raise GraphError(f"parameter path {path!r}: no {p!r} in node {parts[0]!r}")
+        last = parts[-1]
+        if isinstance(cur, list):
+            cur[int(last)] = value
+        elif isinstance(cur, dict):
+            declared = len(parts) == 2 and any(p.name == last for p in t.params)
+            if last not in cur and not declared and not last.startswith("_"):
+                raise GraphError(f"parameter path {path!r}: node {parts[0]!r} has no parameter {last!r} "
+                                 f"(has: {sorted(set(cur) | {p.name for p in t.params})})")
+            cur[last] = value
+        else:
+            raise GraphError(f"parameter path {path!r}: {parts[-2]!r} of node {parts[0]!r} holds no parameters")
+    except (ValueError, IndexError):
+        raise GraphError(f"parameter path {path!r}: no such index in node {parts[0]!r}") from None
+    try:
+        t.validate(params)
     except (TypeError, ValueError, OverflowError) as exc:
         raise GraphError(f"node {parts[0]!r}: {exc}") from None
+    node["params"] = params
 
-
-Evaluator = Callable[[dict, dict, EvalContext, str], np.ndarray]

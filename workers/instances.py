@@ -67,6 +67,20 @@ class InstanceSplit:
     meta: dict = field(default_factory=dict)
 
 
+def check_mask(mask, name: str) -> np.ndarray:
+    """A 2-D boolean array (HxW or HxWx1), else InputError naming the argument."""
+    m = np.asarray(mask)
+    if m.ndim == 3 and m.shape[2] == 1:
+        m = m[..., 0]
+    if m.ndim != 2 or min(m.shape) < 8:
+        raise InputError(f"{name}: expected an HxW mask of at least 8x8 pixels, got shape {np.shape(mask)}")
+    if m.dtype != bool:
+        if not np.all(np.isfinite(m)):
+            raise InputError(f"{name}: mask contains non-finite values")
+        m = m > 0.5
+    return m
+
+
 def _merge_across_borders(lab: np.ndarray, n: int) -> tuple[np.ndarray, int]:
     """Relabel so that components meeting across opposite image borders (a tiling material) are one."""
     pairs = [(lab[:, 0], lab[:, -1]), (lab[0, :], lab[-1, :])]

@@ -10,10 +10,10 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    database's nearest entries (both polarities) join them as further starts, and so do transplants: the best
    lattice starts' placement of cells (tiling, period, rotation, aspect, jitter, distortion) with a database
    entry's look (cell window and features), for looks the crisp template cannot express.
-2. Every start is scored with the pretrained VGG-19 Gram distance (``GramMaskLoss``: relu1_1..relu4_1 of the
-   mask, the paper's texture loss) plus an autocorrelation (layout) distance, at the target's resolution (up to 256 px), rendered there and area-averaged
-   by an integer factor to the loss resolution (128 px for a 256 px mask), so 2-3 px mortar lines survive as
-   grey lines instead of vanishing in a binary downsample.
+2. Every start is scored with the pretrained VGG-19 Gram distance (``GramMaskLoss``: relu1_1..relu4_1 of the mask,
+   the paper's texture loss) plus an autocorrelation (layout) distance, at the target's resolution (up to 256 px),
+   rendered there and area-averaged by an integer factor to the loss resolution (128 px for a 256 px mask), so 2-3
+   px mortar lines survive as grey lines instead of vanishing in a binary downsample.
 3. From the best lattice start the layout (tiling, period, rotation, aspect) is frozen while the cell shape is
    fitted: a line search over larp, smoothness, sector count (2^arity), jitter and norm (``window_lines``; the
    sector count is a rounded step a local search cannot move, and the loss is sharp in larp) on a crop of the
@@ -35,11 +35,21 @@ import torch
 import torch.nn.functional as F
 
 from pptbf_db import pptbf as pp
+from pptbf_db.features import GramExtractor, gram_distance
 
-from .features import GramExtractor, gram_distance
 from .inpaint import masked_autocorrelation
-from .lattice import (ROW_FAMILIES, SPLIT_FAMILIES, Lattice, analyse_lattice, compare_lattices, compare_rows,
-                      half_turn, pptbf_starts, radial_profile, split_sibling)
+from .lattice import (
+    ROW_FAMILIES,
+    SPLIT_FAMILIES,
+    Lattice,
+    analyse_lattice,
+    compare_lattices,
+    compare_rows,
+    half_turn,
+    pptbf_starts,
+    radial_profile,
+    split_sibling,
+)
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
 from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
 

@@ -63,7 +63,7 @@ Channel = Union[str, int]
 ImageLike = Union[str, Path, np.ndarray]
 
 
-def _open_input(path: Path, max_pixels: int) -> "oiio.ImageInput":
+def _open_input(path: Path, max_pixels: int):
     """Open ``path`` with OpenImageIO (alpha kept unassociated) after header checks; InputError on failure."""
     import OpenImageIO as oiio
 
@@ -471,6 +471,27 @@ def load_material(
     logger.info("loaded %s: %dx%d -> %dx%d, maps %s, height scale %.3g", mat.name, w0, h0, tw, th,
                 sorted(mat.maps()), mat.height_scale)
     return mat
+
+
+def write_maps(maps: dict[str, np.ndarray], folder: str | Path, bits: int = 8) -> dict[str, Path]:
+    """Write evaluated maps as PNG, one file per map named after it: albedo sRGB and normal encoded 0..1 at
+    ``bits``, every other map 16-bit grey (clipped to [0, 1], with a warning when it reached outside)."""
+    files: dict[str, Path] = {}
+    for name, arr in maps.items():
+        if name == "albedo":
+            data, b = linear_to_srgb(arr), bits
+        elif name == "normal":
+            data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
+        else:
+            lo, hi = float(arr.min()), float(arr.max())
+            if lo < 0.0 or hi > 1.0:
+                logger.warning("map %s spans [%.3g, %.3g]: clipped to [0, 1] in the PNG", name, lo, hi)
+            data, b = np.clip(arr, 0.0, 1.0), 16
+        if data.ndim == 3 and data.shape[2] == 2:
+            data = np.concatenate([data, np.zeros_like(data[..., :1])], axis=2)
+        files[name] = write_image(output_file(Path(folder), name, ".png"), data[..., :4] if data.ndim == 3 else data,
+                                  bits=b)
+    return files
 
 
 def save_material(material: Material, folder: str | Path, bits: int | str = 8) -> dict[str, Path]:

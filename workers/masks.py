@@ -1,23 +1,22 @@
-"""Mask proceduralisation (paper 5.2): PPTBF query-and-optimise fitting, instance sampling, graph node types.
+"""Mask proceduralisation (paper 5.2): PPTBF query-and-optimise fitting.
 
-* `fit_pptbf_mask`: downsample the binary mask to the fit resolution (default: the database's, e.g. 512 ->
-  128 px), query the index with the mask and its complement, re-rank both top-k lists at our realisation with
-  the threshold T set to the target's white fraction (binarize is a percentile cut, so T is never searched);
-  optionally explore the best `starts` re-ranked entries (either polarity) with short local searches; refine the
-  most promising (workers.mask_opt: nlopt local search on the continuous entries alternating with exhaustive
-  discrete sweeps and, optionally, large period/aspect/orientation moves; best ever kept); finally compare the candidates
-  (query result, explored starts, final) on fresh realisations and return the best there (`validate`): a lower
-  loss at the fit's own realisation is often over-fitting that realisation, not a better pattern. The loss is
-  the descriptor distance (LBP + Gram + spectrum, the index's own descriptor and weights, before PCA) computed
-  in memory: no image files. With `valid` (incomplete masks of sub-layers) the descriptor statistics use only
-  the parent's pixels.
+* `fit_pptbf_mask`: downsample the binary mask to the fit resolution (default: the database's, e.g. 512 -> 128 px),
+  query the index with the mask and its complement, re-rank both top-k lists at our realisation with the threshold T
+  set to the target's white fraction (binarize is a percentile cut, so T is never searched); optionally explore the
+  best `starts` re-ranked entries (either polarity) with short local searches; refine the most promising
+  (workers.mask_opt: nlopt local search on the continuous entries alternating with exhaustive discrete sweeps and,
+  optionally, large period/aspect/orientation moves; best ever kept); finally compare the candidates (query result,
+  explored starts, final) on fresh realisations and return the best there (`validate`): a lower loss at the fit's
+  own realisation is often over-fitting that realisation, not a better pattern. The loss is the descriptor distance
+  (LBP + Gram + spectrum, the index's own descriptor and weights, before PCA) computed in memory: no image files.
+  With `valid` (incomplete masks of sub-layers) the descriptor statistics use only the parent's pixels.
 * `fit_inpainted_mask`: the inpainting variant for sub-layers: segment the inpainted sub-material maps with a
   caller-given segmentation and fit that complete mask.
-* `sample_instances`: label each connected component of a (procedural) parent mask with a cluster drawn from
-  the stored shares.
-* node types "pptbf" (HxWx1 {0,1} mask at any size/scale/seed) and "instances" (HxWxK one-hot clusters).
 
-Acceptance on random known parameters (issue 6), alignment-free by descriptor distance: a PPTBF is stochastic,
+The fitted masks become "pptbf" nodes (:mod:`workers.nodes.pptbf`); instance masks are sampled, not fitted
+(:mod:`workers.nodes.instances`).
+
+Acceptance on random known parameters, alignment-free by descriptor distance: a PPTBF is stochastic,
 and another realisation (shift) of the TRUE parameters has a best-shift IoU near chance, f/(2-f) for white
 fraction f (measured 0.1-0.7 at 128 px), so "IoU >= 0.8" is only reachable for the same realisation. The
 criterion is `realisation_distance(fit) <= 1.5 x realisation_distance(truth)` (fresh realisations, as a graph
@@ -29,21 +28,17 @@ No torch gradient step: the differentiable torch PPTBF costs 2-7 s per forward+b
 from __future__ import annotations
 
 import logging
-import math
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from scipy import ndimage
 
 from pptbf_db import pptbf as pp
 
-from .errors import GraphError, InputError
-from .graph import EvalContext, ProceduralMaterial, register_node
-from .instances import piece_labels
-from .pieces import cell_pieces
+from .errors import InputError
+from .instances import check_mask
 from .mask_opt import Budget, OptSettings, explore, optimise
 
 if TYPE_CHECKING:
@@ -172,20 +167,6 @@ class MaskFit:
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def _check_mask(mask, name: str) -> np.ndarray:
-    """A 2-D boolean array (HxW or HxWx1), else InputError naming the argument."""
-    m = np.asarray(mask)
-    if m.ndim == 3 and m.shape[2] == 1:
-        m = m[..., 0]
-    if m.ndim != 2 or min(m.shape) < 8:
-        raise InputError(f"{name}: expected an HxW mask of at least 8x8 pixels, got shape {np.shape(mask)}")
-    if m.dtype != bool:
-        if not np.all(np.isfinite(m)):
-            raise InputError(f"{name}: mask contains non-finite values")
-        m = m > 0.5
-    return m
 
 
 def downsample_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -392,8 +373,8 @@ def fit_pptbf_mask(mask, index, valid=None, config: MaskFitConfig | None = None,
 
 def _prepare_target(mask, valid, fit_width: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Validate and downsample mask (and valid) to the fit width; InputError for unusable input."""
-    m = _check_mask(mask, "mask")
-    v = None if valid is None else _check_mask(valid, "valid")
+    m = check_mask(mask, "mask")
+    v = None if valid is None else check_mask(valid, "valid")
     if v is not None and v.shape != m.shape:
         raise InputError(f"valid: shape {v.shape} differs from the mask's {m.shape}")
     if v is not None and v.sum() < 64:
@@ -447,7 +428,7 @@ def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit 
         return None
     lat = analyse_lattice(target)
     if lat.kind == "none":
-        lat = _lattice_above_fit_size(_check_mask(mask, "mask"), target.shape) or lat
+        lat = _lattice_above_fit_size(check_mask(mask, "mask"), target.shape) or lat
     if lat.kind == "none":
         logger.info("mask has no lattice (regularity %.2f): query-and-optimise fit", lat.regularity)
         return None
@@ -571,150 +552,8 @@ def fit_inpainted_mask(inpainted_maps: dict[str, np.ndarray], segment: Callable[
     shapes = {k: np.shape(a)[:2] for k, a in inpainted_maps.items()}
     if len(set(shapes.values())) != 1:
         raise InputError(f"inpainted_maps: maps differ in size {shapes}")
-    mask = _check_mask(segment(inpainted_maps), "segment(inpainted_maps)")
+    mask = check_mask(segment(inpainted_maps), "segment(inpainted_maps)")
     if mask.shape != next(iter(shapes.values())):
         raise InputError(f"segment(inpainted_maps): returned shape {mask.shape}, "
                          f"maps are {next(iter(shapes.values()))}")
     return fit_pptbf_mask(mask, index, None, config, seed)
-
-
-# ----------------------------------------------------------------------------- instance sampling
-
-
-def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    """4-connected components of a bool mask: (labels 0..n, 0 = background; n)."""
-    lab, n = ndimage.label(mask)
-    return lab, int(n)
-
-
-def _check_shares(shares) -> np.ndarray:
-    """Non-negative finite shares with a positive sum, normalised to 1."""
-    s = np.asarray(shares, dtype=np.float64).ravel()
-    if s.size == 0 or not np.all(np.isfinite(s)) or (s < 0).any() or s.sum() <= 0:
-        raise InputError(f"shares: need a non-empty list of non-negative numbers with a positive sum, got {shares!r}")
-    return s / s.sum()
-
-
-def sample_instances(parent_mask, shares, rng: np.random.Generator, separate: float = 0.0,
-                     labels: np.ndarray | None = None) -> np.ndarray:
-    """Cluster labels (HxW int, -1 outside the parent): each connected component draws a cluster from `shares`.
-    ``separate`` > 0 first cuts the parent at its necks (``workers.instances.separate_cells``, markers that many
-    px apart), as the decomposition cut the input's cells before it measured their kinds: an outline network
-    with gaps then still gives one piece per cell; the cut lines take the kind of the nearest piece. ``labels``:
-    those pieces when already numbered (``workers.pieces.cell_pieces``)."""
-    m = _check_mask(parent_mask, "parent_mask")
-    p = _check_shares(shares)
-    lab = piece_labels(m, separate) if labels is None else labels
-    n = int(lab.max())
-    draws = rng.choice(p.size, size=n, p=p) if n else np.zeros(0, dtype=np.int64)
-    return np.concatenate([[-1], draws]).astype(np.int64)[lab]
-
-
-def instance_shares(labels: np.ndarray, n_clusters: int) -> np.ndarray:
-    """Measured share of components per cluster in a label map from `sample_instances` (for checks)."""
-    lab, n = _components(labels >= 0)
-    if n == 0:
-        return np.zeros(n_clusters)
-    first = ndimage.labeled_comprehension(labels, lab, np.arange(1, n + 1), lambda v: v[0], np.int64, -1)
-    return np.bincount(first, minlength=n_clusters)[:n_clusters] / float(n)
-
-
-# ----------------------------------------------------------------------------- graph nodes
-
-
-def _node_shift(params: dict, ctx: EvalContext, node_id: str) -> tuple[float, float]:
-    """The realisation: params["shift"] when given, else derived from the material seed and node id."""
-    s = params.get("shift")
-    if s is not None:
-        return float(s[0]), float(s[1])
-    r = np.random.default_rng(ctx.node_seed(node_id))
-    return tuple(float(x) for x in r.uniform(0.0, 8.0, size=2))
-
-
-@register_node
-class PPTBFNode:
-    """Binary PPTBF mask (HxWx1 in {0,1}); params: `params` (29 numbers, period in `ref_width` pixels),
-    `complement`, `ref_width` (working width the params are defined at), optional `shift`; optional input
-    `parent` multiplies the mask (sub-layer masks stay inside their parent)."""
-
-    name = "pptbf"
-    inputs = ("parent",)
-
-    def validate(self, params: dict) -> None:
-        p = params.get("params")
-        if not isinstance(p, list) or len(p) != pp.N_PARAMS or not all(
-                isinstance(x, (int, float)) and math.isfinite(x) for x in p):
-            raise GraphError(f"pptbf.params must be a list of {pp.N_PARAMS} finite numbers "
-                             f"({', '.join(pp.PARAM_NAMES)})")
-        rw = params.get("ref_width")
-        if not isinstance(rw, (int, float)) or rw <= 0:
-            raise GraphError("pptbf.ref_width must be a positive number (the working width in pixels)")
-        if not isinstance(params.get("complement", False), bool):
-            raise GraphError("pptbf.complement must be true or false")
-        s = params.get("shift")
-        if s is not None and (not isinstance(s, list) or len(s) != 2 or not all(
-                isinstance(x, (int, float)) and math.isfinite(x) for x in s)):
-            raise GraphError("pptbf.shift must be null or a list of 2 finite numbers")
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        rw = float(params["ref_width"])
-        # scale 1 = the pattern size it had at the working size, whatever width the params are defined at
-        pixel_scale = ctx.px_scale * float(ctx.working_size[0]) / rw
-        v = pp.evaluate(np.asarray(params["params"], dtype=np.float64), ctx.width, ctx.height,
-                        shift=_node_shift(params, ctx, node_id), pixel_scale=pixel_scale, ref_width=int(round(rw)))
-        m = pp.binarize(v, float(params["params"][0]))
-        if params.get("complement", False):
-            m = ~m
-        out = m.astype(np.float32)[..., None]
-        if "parent" in inputs:
-            out = out * (inputs["parent"][..., :1] > 0.5)
-        return out.astype(np.float32)
-
-
-@register_node
-class InstancesNode:
-    """One-hot cluster masks (HxWxK) of the connected components of input `parent`, drawn with `shares`;
-    optional `separate` (working-size px, follows the scale): cut the parent at its necks first."""
-
-    name = "instances"
-    inputs = ("parent",)
-
-    def validate(self, params: dict) -> None:
-        s = params.get("shares")
-        if not isinstance(s, list) or not s:
-            raise GraphError("instances.shares must be a non-empty list of numbers")
-        sep = params.get("separate", 0.0)
-        if not isinstance(sep, (int, float)) or isinstance(sep, bool) or not math.isfinite(sep) or not 0 <= sep <= 1e4:
-            raise GraphError("instances.separate must be a number of pixels in 0..10000 (0 = components only)")
-        try:
-            _check_shares(s)
-        except InputError as exc:
-            raise GraphError(f"instances.{exc}") from None
-
-    def evaluate(self, params, inputs, ctx, node_id):
-        if "parent" not in inputs:
-            raise GraphError(f"instances node {node_id} needs input 'parent'")
-        k = len(params["shares"])
-        sep = float(params.get("separate", 0.0)) * ctx.px_scale
-        labels = sample_instances(inputs["parent"][..., 0] > 0.5, params["shares"], ctx.rng(node_id), sep,
-                                  labels=cell_pieces(ctx, inputs["parent"], sep))
-        out = np.zeros((ctx.height, ctx.width, k), dtype=np.float32)
-        hh, ww = np.nonzero(labels >= 0)
-        out[hh, ww, labels[hh, ww]] = 1.0
-        return out
-
-
-def add_mask_node(mat: ProceduralMaterial, node_id: str, fit: MaskFit, working_width: int | None = None,
-                  parent: str | None = None, pin_shift: bool = False) -> str:
-    """Add a "pptbf" node for `fit` to `mat` (optionally inside node `parent`); returns its id."""
-    ww = int(working_width or mat.working_size[0])
-    ins = {"parent": parent} if parent else {}
-    return mat.add(node_id, "pptbf", fit.node_params(ww, pin_shift), **ins)
-
-
-def add_instances_node(mat: ProceduralMaterial, node_id: str, parent: str, shares, separate: float = 0.0) -> str:
-    """Add an "instances" node (HxWxK one-hot) over mask node `parent`; pick cluster i with a "channel" node."""
-    params: dict = {"shares": [float(x) for x in _check_shares(shares)]}
-    if separate > 0:
-        params["separate"] = round(float(separate), 3)
-    return mat.add(node_id, "instances", params, parent=parent)

@@ -36,8 +36,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy import ndimage
 from scipy.cluster.vq import kmeans2
-from scipy.special import logsumexp
 from scipy.spatial import cKDTree
+from scipy.special import logsumexp
 
 from .errors import InputError
 from .spectrum import SpectrumConfig, minmax, pca_project, spectrum_stack

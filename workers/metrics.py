@@ -43,7 +43,7 @@ def sliced_wasserstein(a: np.ndarray, b: np.ndarray, config: SWDConfig = SWDConf
         raise ValueError(f"channel counts differ: {a.shape} vs {b.shape}")
     rng = np.random.default_rng(seed)
     total = 0.0
-    for level in range(config.levels):
+    for _level in range(config.levels):
         if min(a.shape[:2] + b.shape[:2]) < config.patch + 1:
             break
         pa = _random_patches(a, config.patch, config.patches, rng)

@@ -12,10 +12,10 @@ Synthesis is procedural: one complex white-noise field per PCA component is shap
 spectrum resampled to the output grid (FFT at the output size: exactly stationary, periodic so maps
 tile, variance-exact, no tile seams) and the real inverse FFT is taken. Outputs over 4096^2 px are built from
 independent 2048 px tiles (wrapping, so still periodic) blended with weights normalised by their
-root-sum-square, which keeps the variance in the overlaps; FFT memory then follows the tile, not the output. The layers of a component share
-that white noise: they are band-pass pieces of one image, their bands overlap, and independent phases
-would give the sum of powers instead of the power of the sum (measured on a known spectrum: down to 35%
-of the power where bands overlap, radial log error 0.34 instead of 0.06).
+root-sum-square, which keeps the variance in the overlaps; FFT memory then follows the tile, not the output.
+The layers of a component share that white noise: they are band-pass pieces of one image, their bands overlap, and
+independent phases would give the sum of powers instead of the power of the sum (measured on a known spectrum: down
+to 35% of the power where bands overlap, radial log error 0.34 instead of 0.06).
 ``scale`` s means s output pixels per fitted pixel: the output amplitude at frequency f is
 ``s * sqrt(psd(s * f))``.
 """
@@ -29,9 +29,9 @@ import scipy.fft as sfft
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage
 
+from .arrays import decode_array, encode_array
 from .errors import GraphError, InputError
 from .gabor import fit_gabor, gabor_psd
-from .graph import EvalContext, decode_array, encode_array, gaussian_blur, register_node
 
 logger = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ class NoiseModel:
         return int(self.base.size)
 
     def to_params(self) -> dict:
-        """JSON-able node params; arrays via :func:`workers.graph.encode_array` (spectra float16, max-normalised)."""
+        """JSON-able node params; arrays via :func:`workers.arrays.encode_array` (spectra float16, max-normalised)."""
         layers = []
         for lay in self.layers:
             if lay.kind == "window":
@@ -644,77 +644,6 @@ def synthesize(model: NoiseModel, width: int, height: int, scale: float = 1.0, s
                tile: int | None = None) -> np.ndarray:
     """The histogram-matched noise map HxWxC (see :func:`synthesize_layers`; same values, faster: no layers)."""
     return _synthesize(model, width, height, scale, seed, with_layers=False, tile=tile).matched
-
-
-# ----------------------------------------------------------------------------- graph node
-
-
-def _filter_values(f: dict, key: str, default: float, c: int, where: str) -> np.ndarray:
-    """A scalar or per-channel filter value as a (C,) float32 array (GraphError if malformed)."""
-    v = np.atleast_1d(np.asarray(f.get(key, default), dtype=np.float64))
-    if v.ndim != 1 or v.size not in (1, c) or not np.all(np.isfinite(v)):
-        raise GraphError(f"{where}.{key} must be a finite number or a list of {c} numbers")
-    return np.broadcast_to(v, (c,)).astype(np.float32)
-
-
-@register_node
-class NoiseNode:
-    """Generator node: the noise model plus recomposition filters.
-
-    Output ``O = matched + sum_k (blur(a_k L_k + b_k; sigma_k) - L_k) + (c - 1) * base + d``: with identity
-    filters (a=1, b=0, sigma=0, c=1, d=0) it is exactly the histogram-matched synthesis. ``sigma`` is in
-    working-size pixels (times ``ctx.px_scale``). Seed: ``params["seed"]`` or the node seed.
-    """
-
-    name = "noise"
-    inputs: tuple[str, ...] = ()
-
-    def validate(self, params: dict) -> None:
-        model = NoiseModel.from_params(params)
-        c = model.channels
-        filters = params.get("filters", [])
-        if not isinstance(filters, list) or len(filters) > len(model.layers):
-            raise GraphError(f"noise.filters must be a list of at most {len(model.layers)} objects (one per layer)")
-        for i, f in enumerate(filters):
-            if not isinstance(f, dict):
-                raise GraphError(f"noise.filters[{i}] must be an object with a, b, sigma")
-            for key, dflt in (("a", 1.0), ("b", 0.0), ("sigma", 0.0)):
-                v = _filter_values(f, key, dflt, c, f"noise.filters[{i}]")
-                if key == "sigma" and np.any(v < 0):
-                    raise GraphError(f"noise.filters[{i}].sigma must be >= 0")
-        for key, dflt in (("c", 1.0), ("d", 0.0)):
-            _filter_values(params, key, dflt, c, "noise")
-        if "seed" in params and not isinstance(params["seed"], int):
-            raise GraphError("noise.seed must be an integer")
-
-    def evaluate(self, params: dict, inputs: dict, ctx: EvalContext, node_id: str) -> np.ndarray:
-        model = NoiseModel.from_params(params)
-        c = model.channels
-        seed = int(params["seed"]) if "seed" in params else ctx.node_seed(node_id)
-        filt = []
-        for f in params.get("filters", []):
-            a = _filter_values(f, "a", 1.0, c, "filters")
-            b = _filter_values(f, "b", 0.0, c, "filters")
-            sig = _filter_values(f, "sigma", 0.0, c, "filters") * np.float32(ctx.px_scale)
-            filt.append(None if (np.all(a == 1) and np.all(b == 0) and np.all(sig <= 1e-3)) else (a, b, sig))
-        need = any(v is not None for v in filt)
-        res = _synthesize(model, ctx.width, ctx.height, ctx.px_scale, seed, with_layers=need)
-        out = res.matched
-        for i, v in enumerate(filt):
-            if v is None:
-                continue
-            a, b, sig = v
-            lay = res.layers[i]
-            x = a * lay + b
-            if np.all(sig == sig[0]):
-                y = gaussian_blur(x, float(sig[0]))
-            else:
-                y = np.stack([gaussian_blur(x[..., k], float(sig[k])) for k in range(c)], axis=-1)
-            out = out + (y - lay)
-        cg = _filter_values(params, "c", 1.0, c, "noise")
-        d = _filter_values(params, "d", 0.0, c, "noise")
-        out = out + (cg - 1.0) * model.base + d
-        return out.astype(np.float32)
 
 
 def noise_params(model: NoiseModel, filters: list[dict] | None = None, c: float = 1.0, d: float = 0.0,

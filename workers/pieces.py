@@ -19,15 +19,14 @@ height only.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
-from .errors import GraphError, InputError
-from .graph import EvalContext, ProceduralMaterial, register_node
-from .instances import nearest_labels, piece_labels
+from .errors import InputError
+from .instances import nearest_labels
+from .nodes.pieces import psd_root
 
 MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
 
@@ -47,15 +46,9 @@ class PieceStats:
         return cls(cov=np.asarray(d["cov"], np.float64), pieces=int(d.get("pieces", 0)))
 
 
-def _root(cov: np.ndarray) -> np.ndarray:
-    """F with F @ F.T the nearest positive semi-definite matrix to ``cov`` (negative eigenvalues set to zero)."""
-    w, v = np.linalg.eigh((cov + cov.T) / 2)
-    return v * np.sqrt(np.clip(w, 0.0, None))
-
-
 def _psd(cov: np.ndarray) -> np.ndarray:
     """The nearest positive semi-definite matrix (negative eigenvalues set to zero)."""
-    f = _root(cov)
+    f = psd_root(cov)
     return f @ f.T
 
 
@@ -87,66 +80,6 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> t
     return (out[..., 0] if img.ndim == 2 else out), PieceStats(_psd(cov), int(ids.size))
 
 
-def cell_pieces(ctx: EvalContext, parent: np.ndarray, separate: float) -> np.ndarray:
-    """``piece_labels`` of a parent mask node's output (HxWx1), computed once per evaluation: the ``instances``
-    node and the ``piece_labels`` node over the same parent share it (the neck cut is the costly part at
-    output sizes: about 10 s at 2048 x 1024)."""
-    key = ("cell_pieces", id(parent), float(separate))
-    if key not in ctx.cache:
-        ctx.cache[key] = piece_labels(parent[..., 0] > 0.5, separate)
-    return ctx.cache[key]
-
-
-@register_node
-class PieceLabelsNode:
-    """Piece numbers (HxWx1 float, 0 outside, 1..n) of input ``parent`` (a cell mask), cut at its necks with
-    ``separate`` working-size px (follows the scale), as the ``instances`` node over the same parent."""
-
-    name = "piece_labels"
-    inputs = ("parent",)
-
-    def validate(self, params: dict) -> None:
-        sep = params.get("separate", 0.0)
-        if not isinstance(sep, (int, float)) or isinstance(sep, bool) or not math.isfinite(sep) or not 0 <= sep <= 1e4:
-            raise GraphError("piece_labels.separate must be a number of pixels in 0..10000 (0 = components only)")
-
-    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
-        if "parent" not in inputs:
-            raise GraphError(f"piece_labels node {node_id} needs input 'parent'")
-        sep = float(params.get("separate", 0.0)) * ctx.px_scale
-        return cell_pieces(ctx, inputs["parent"], sep).astype(np.float32)[..., None]
-
-
-@register_node
-class PieceOffsetsNode:
-    """One offset per piece of input ``labels`` (a ``piece_labels`` node), drawn from N(0, ``cov``) with the node's
-    seed: HxWxC (C = the size of cov), zero outside the pieces."""
-
-    name = "piece_offsets"
-    inputs = ("labels",)
-
-    def validate(self, params: dict) -> None:
-        cov = params.get("cov")
-        try:
-            a = np.asarray(cov, np.float64)
-        except (TypeError, ValueError):
-            a = None
-        if a is None or a.ndim != 2 or a.shape[0] != a.shape[1] or not 1 <= a.shape[0] <= 4 or \
-                not np.all(np.isfinite(a)) or np.any(np.diag(a) < 0):
-            raise GraphError("piece_offsets.cov must be a square list of lists (1x1 to 4x4) of finite numbers with "
-                             "a non-negative diagonal")
-
-    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
-        if "labels" not in inputs:
-            raise GraphError(f"piece_offsets node {node_id} needs input 'labels'")
-        lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
-        f = _root(np.asarray(params["cov"], np.float64))
-        n = int(lab.max()) if lab.size else 0
-        table = ctx.rng(node_id).standard_normal((n + 1, f.shape[0])) @ f.T
-        table[0] = 0.0
-        return table[lab].astype(np.float32)
-
-
 def kind_piece_labels(labels: np.ndarray, kinds, kind: int) -> np.ndarray:
     """The pieces of kind ``kind`` (HxW int, 0 elsewhere) from an instance split's labels (1..N, 0 = no kept
     piece) and kinds (kind of piece i+1): gaps join the nearest piece, as the kind masks do
@@ -155,9 +88,3 @@ def kind_piece_labels(labels: np.ndarray, kinds, kind: int) -> np.ndarray:
     k = np.concatenate([[-1], np.asarray(kinds, np.int64)])
     near = nearest_labels(lab) if (lab == 0).any() and lab.max() > 0 else lab
     return np.where(k[near] == int(kind), near, 0)
-
-
-def add_piece_offsets(mat: ProceduralMaterial, node_id: str, leaf: str, labels: str, stats: PieceStats) -> str:
-    """Add ``piece_offsets`` over ``labels`` and an ``add`` of it to node ``leaf``; returns the add node's id."""
-    off = mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": stats.to_dict()["cov"]}, labels=labels)
-    return mat.add(node_id, "add", {}, in0=leaf, in1=off)

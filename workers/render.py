@@ -95,7 +95,6 @@ def render(albedo: torch.Tensor, normal: torch.Tensor, roughness: torch.Tensor, 
     a2 = (alpha * alpha).clamp_min(1e-8)
     dd = a2 / (math.pi * (ndl * ndl * (a2 - 1.0) + 1.0) ** 2)
     k = (alpha / 2.0).clamp_min(1e-6)
-    g1 = ndl / (ndl * (1.0 - k) + k)
     if metallic is not None:
         m = _hwc(metallic, "metallic", (1,)).clamp(0.0, 1.0)
         f0_t = f0 * (1.0 - m) + albedo * m

@@ -9,13 +9,13 @@ scale 1 keeps the pattern size the mask had, --seed picks a realisation (none: t
 from __future__ import annotations
 
 import json
-import logging
 import time
 from pathlib import Path
 
 import numpy as np
 
-logger = logging.getLogger(__name__)
+from service.commands.common import common_parser, parse_size, positive_float
+from workers.errors import InputError
 
 FORMAT = "proceduralize-mask/1"
 #: the smallest side of a mask the fit reads (its lattice analysis needs 16 px)
@@ -24,7 +24,6 @@ MIN_MASK_SIDE = 16
 
 def _read_mask(path: Path, field: str) -> np.ndarray:
     """A bool HxW mask from an image file (first channel > 0.5); InputError naming the file and the field."""
-    from workers.errors import InputError
     from workers.maps import read_image
 
     img = read_image(path)
@@ -48,7 +47,6 @@ def fit_document(fit, source: Path, size: tuple[int, int]) -> dict:
 def load_fit(path: Path):
     """(MaskFit, source width) from a FIT.json; InputError naming the file and the field otherwise."""
     from pptbf_db import pptbf as pp
-    from workers.errors import InputError
     from workers.masks import MaskFit
 
     try:
@@ -79,15 +77,13 @@ def render_fit(fit, source_width: int, width: int, height: int, *, scale: float 
     return fit.render(width, height, pixel_scale=scale * source_width / float(fit.fit_size[0]), shift=shift)
 
 
-def _add_mask(sub) -> None:
-    from service.cli import _common, _positive_float, _size
-
-    p = sub.add_parser("mask", parents=[_common()], help="fit a PPTBF to any binary mask, or render a fit",
+def register(sub) -> None:
+    p = sub.add_parser("mask", parents=[common_parser()], help="fit a PPTBF to any binary mask, or render a fit",
                        description="Fit a procedural PPTBF mask to a binary image (bricks, tiles, stains...) and "
                                    "render it at any size, scale and seed.")
     msub = p.add_subparsers(dest="mask_command", metavar="ACTION")
     msub.required = True
-    f = msub.add_parser("fit", parents=[_common()], help="fit a PPTBF to a binary mask image",
+    f = msub.add_parser("fit", parents=[common_parser()], help="fit a PPTBF to a binary mask image",
                         description="Fit a PPTBF to MASK (white = the layer, first channel > 0.5). A mask with a "
                                     "lattice (bricks, tiles, plates) is fitted lattice-first with the VGG-19 Gram "
                                     "loss at up to 256 px; others by database query and optimisation. Writes "
@@ -97,23 +93,22 @@ def _add_mask(sub) -> None:
                    help="pixels where the mask is known (white); the loss ignores the rest")
     f.add_argument("--out", type=Path, required=True, metavar="FIT.json")
     f.add_argument("--db", type=Path, default=None, metavar="DIR", help="PPTBF database (default: the bundled one)")
-    f.add_argument("--budget", type=_positive_float, default=None, metavar="S", help="time budget in seconds")
+    f.add_argument("--budget", type=positive_float, default=None, metavar="S", help="time budget in seconds")
     f.add_argument("--evals", type=int, default=None, metavar="N", help="loss evaluations at most")
     f.add_argument("--seed", type=int, default=0, help="optimiser seed (default 0)")
-    f.set_defaults(handler=_cmd_mask_fit)
-    r = msub.add_parser("render", parents=[_common()], help="render a mask fit at any size",
+    f.set_defaults(handler=handle_fit)
+    r = msub.add_parser("render", parents=[common_parser()], help="render a mask fit at any size",
                         description="Render FIT.json at WxH; scale 1 keeps the pattern size of the fitted mask.")
     r.add_argument("fit", type=Path, metavar="FIT.json")
-    r.add_argument("--size", type=_size, required=True, metavar="WxH")
+    r.add_argument("--size", type=parse_size, required=True, metavar="WxH")
     r.add_argument("--seed", type=int, default=None, help="realisation (default: the fit's own)")
-    r.add_argument("--scale", type=_positive_float, default=1.0, help="pattern scale (2 = twice as big)")
+    r.add_argument("--scale", type=positive_float, default=1.0, help="pattern scale (2 = twice as big)")
     r.add_argument("--out", type=Path, required=True, metavar="MASK.png")
-    r.set_defaults(handler=_cmd_mask_render)
+    r.set_defaults(handler=handle_render)
 
 
-def _cmd_mask_fit(args) -> int:
+def handle_fit(args) -> int:
     from pptbf_db.index import PPTBFIndex, default_database_path
-    from workers.errors import InputError
     from workers.maps import write_image
     from workers.masks import MaskFitConfig, fit_pptbf_mask
 
@@ -144,7 +139,7 @@ def _cmd_mask_fit(args) -> int:
     return 0
 
 
-def _cmd_mask_render(args) -> int:
+def handle_render(args) -> int:
     from workers.maps import write_image
 
     fit, width = load_fit(args.fit)
@@ -153,6 +148,3 @@ def _cmd_mask_render(args) -> int:
     out = write_image(args.out, m.astype(np.float32), bits=8)
     print(f"rendered {args.fit} at {w}x{h} (scale {args.scale}, seed {args.seed}) -> {out}")
     return 0
-
-
-COMMANDS = [_add_mask]

