@@ -12,7 +12,6 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
-import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
@@ -23,6 +22,7 @@ import numpy as np
 
 from pptbf_db import pptbf
 from pptbf_db.descriptor import DescriptorConfig, block_slices, describe_masks, fit_pca
+from pptbf_db.files import atomic_path, write_text
 from pptbf_db.index import DEGENERATE_WHITE, FORMAT
 from pptbf_db.pptbf import GENERATOR
 
@@ -159,10 +159,8 @@ def raw_path(folder: Path, cid: int) -> Path:
 
 def _save_npy(path: Path, arr: np.ndarray) -> None:
     """Atomic np.save (write a temporary file, then rename)."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, arr, allow_pickle=False)
-    os.replace(tmp, path)
 
 
 def save_chunk(folder: Path, cid: int, raw: np.ndarray, white: np.ndarray, lattice: np.ndarray) -> None:
@@ -187,9 +185,8 @@ def finish_database(folder: Path, cfg: BuildConfig, params: np.ndarray, n_chunks
     pca = fit_pca(raw[usable] if usable.sum() > 2 else raw, cfg.descriptor)
     reduced = pca.transform(raw).astype(cfg.reduced_dtype)
     pca_seconds = time.perf_counter() - t0
-    with open(folder / "pca.npz.tmp", "wb") as fh:
+    with atomic_path(folder / "pca.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **pca.to_arrays())
-    os.replace(folder / "pca.npz.tmp", folder / "pca.npz")
     _save_npy(folder / "reduced.npy", reduced)
     _save_npy(folder / "white.npy", white)
     _save_npy(folder / "lattice.npy", lattice)
@@ -218,8 +215,7 @@ def finish_database(folder: Path, cfg: BuildConfig, params: np.ndarray, n_chunks
             "task_core_seconds": round(float(task_core_seconds), 2), "pca_seconds": round(pca_seconds, 2),
             "raw_kept": bool(keep_raw),
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
-    (folder / "meta.json.tmp").write_text(json.dumps(meta, indent=1), encoding="utf-8")
-    os.replace(folder / "meta.json.tmp", folder / "meta.json")
+    write_text(folder / "meta.json", json.dumps(meta, indent=1))
     if not keep_raw:
         drop_raw(folder, n_chunks)
     logger.info("PPTBF database %s: %d entries, dim %d (%.1f%% variance), %d degenerate",

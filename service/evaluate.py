@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from pptbf_db.errors import ProceduralizeError
+from pptbf_db.files import write_text
 from service.folder import MaterialFolder
 from service.pipeline import read_npz
 from workers.errors import InputError
@@ -70,12 +71,7 @@ def _clean(v):
     return v
 
 
-def _atomic_text(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
-    return path
+
 
 
 def _write_csv(path: Path, rows: list[dict], columns: tuple[str, ...]) -> Path:
@@ -85,7 +81,7 @@ def _write_csv(path: Path, rows: list[dict], columns: tuple[str, ...]) -> Path:
     w.writeheader()
     for r in rows:
         w.writerow({k: "" if _clean(r.get(k)) is None else _clean(r.get(k)) for k in columns})
-    return _atomic_text(path, buf.getvalue())
+    return write_text(path, buf.getvalue())
 
 
 def _write_json(path: Path, doc: dict) -> Path:
@@ -96,7 +92,7 @@ def _write_json(path: Path, doc: dict) -> Path:
             return [walk(v) for v in x]
         return _clean(x)
 
-    return _atomic_text(path, json.dumps(walk(doc), indent=1))
+    return write_text(path, json.dumps(walk(doc), indent=1))
 
 
 def evaluate_material_dir(mdir: MaterialFolder | Path, name: str, seed: int = 0,

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
+from pptbf_db.files import atomic_path, write_text
 from service.folder import MaterialFolder, safe_name
 from workers import budget
 from workers.errors import InputError
@@ -67,26 +68,15 @@ def time_limit(seconds: float | None, what: str) -> Iterator[None]:
 # ----------------------------------------------------------------------------- files
 
 
-def _tmp(path: Path) -> Path:
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-
-
 def write_json(path: Path, doc: Any) -> Path:
     """Atomic JSON write."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    tmp.write_text(json.dumps(doc, indent=1, default=_json_default), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    return write_text(path, json.dumps(doc, indent=1, default=_json_default))
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     """Atomic npz write (plain arrays, never object arrays)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
-    tmp.replace(path)
     return path
 
 
@@ -122,28 +112,13 @@ def load_working_material(where: MaterialFolder | Path):
     from workers.maps import Material
 
     folder = MaterialFolder.of(where)
-    arrays = read_npz(folder.working_maps)
-    meta = json.loads(folder.working_meta.read_text(encoding="utf-8"))
-    return Material(albedo=arrays["albedo"], normal=arrays.get("normal"), roughness=arrays.get("roughness"),
-                    height=arrays.get("height"), metallic=arrays.get("metallic"), name=meta["name"],
-                    sources=meta.get("sources", {}), height_scale=float(meta.get("height_scale", 1.0)),
-                    meta=meta.get("meta", {}), normal_tilt=tuple(meta.get("normal_tilt", (0.0, 0.0))))
+    return Material.from_arrays(read_npz(folder.working_maps),
+                                json.loads(folder.working_meta.read_text(encoding="utf-8")))
 
 
 def load_tree(folder: MaterialFolder) -> MaskNode:
     """The decomposition tree written by the decompose stage."""
-    arrays = read_npz(folder.tree_masks)
-    doc = json.loads(folder.tree.read_text(encoding="utf-8"))
-
-    def build(d: dict) -> MaskNode:
-        key = safe_name(d["id"])
-        meta = {k: arrays[v["npz"]] if isinstance(v, dict) and set(v) == {"npz"} else v
-                for k, v in d.get("meta", {}).items()}
-        return MaskNode(id=d["id"], mask=arrays[f"mask_{key}"].astype(bool), method=d.get("method", "leaf"),
-                        children=[build(c) for c in d.get("children", [])], shares=d.get("shares"),
-                        alpha=arrays.get(f"alpha_{key}"), meta=meta)
-
-    return build(doc["tree"])
+    return MaskNode.from_arrays(json.loads(folder.tree.read_text(encoding="utf-8")), read_npz(folder.tree_masks))
 
 
 def tree_info(tree) -> dict:
@@ -207,12 +182,8 @@ def stage_load(call: StageCall, holder: Any = None) -> dict:
         roughness_channel=ch.get("roughness"), metallic_channel=ch.get("metallic"),
         albedo_colorspace=spec.albedo_colorspace, normal_convention=spec.normal_convention,
         working_size=ws, name=spec.name)
-    arrays = {k: v.astype(np.float32) for k, v in mat.maps().items()}
-    written = [write_npz(folder.working_maps, arrays)]
-    meta = {"name": mat.name, "size": list(mat.size), "height_scale": mat.height_scale,
-            "normal_tilt": list(mat.normal_tilt), "sources": mat.sources, "meta": mat.meta,
-            "maps": sorted(arrays)}
-    written.append(write_json(folder.working_meta, meta))
+    arrays, meta = mat.to_arrays()
+    written = [write_npz(folder.working_maps, arrays), write_json(folder.working_meta, meta)]
     pngs = save_material(mat, folder.working_pngs)
     written += [p for p in pngs.values()]
     return {"files": written, "info": {"size": list(mat.size), "maps": sorted(arrays),
@@ -254,24 +225,7 @@ def stage_decompose(call: StageCall, holder: Any = None) -> dict:
         from workers.decompose import decompose
 
         tree = decompose(mat, _with_scribble_images(options, (h, w)), seed=int(call.spec.seed))
-    arrays: dict[str, np.ndarray] = {}
-
-    def doc(n) -> dict:
-        key = safe_name(n.id)
-        arrays[f"mask_{key}"] = np.asarray(n.mask, dtype=np.uint8)
-        if n.alpha is not None:
-            arrays[f"alpha_{key}"] = np.asarray(n.alpha, dtype=np.float32)
-        meta = {}
-        for k, v in n.meta.items():  # large arrays (instance labels...) go to the npz, not the JSON
-            if isinstance(v, np.ndarray) and v.size > 64:
-                arrays[f"meta_{key}__{safe_name(k)}"] = v
-                meta[k] = {"npz": f"meta_{key}__{safe_name(k)}"}
-            else:
-                meta[k] = v
-        return {"id": n.id, "method": n.method, "shares": n.shares, "meta": _to_jsonable(meta),
-                "children": [doc(c) for c in n.children]}
-
-    tree_doc = {"tree": doc(tree), "summary": tree.describe()}
+    tree_doc, arrays = tree.to_arrays()
     files = [write_npz(folder.tree_masks, arrays), write_json(folder.tree, tree_doc)]
     for n in tree.walk():
         files.append(write_image(folder.mask_png(n.id), n.mask.astype(np.float32)))

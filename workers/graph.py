@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from pptbf_db.files import write_text
+
 from .errors import GraphError
 from .height import height_to_normal
 from .nodes import NODE_TYPES, EvalContext, as3
@@ -260,13 +262,9 @@ def save(mat: ProceduralMaterial, path: str | Path) -> Path:
     doc = mat.to_json()
     from_json(json.loads(json.dumps(doc)), str(path))
     p = Path(path)
-    tmp = p.with_suffix(p.suffix + ".tmp")
     try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-        tmp.replace(p)
+        write_text(p, json.dumps(doc, indent=1))
     except OSError as exc:
-        tmp.unlink(missing_ok=True) if tmp.parent.is_dir() else None
         raise GraphError(f"{p}: cannot write the material file ({exc.strerror or exc})") from None
     return p
 

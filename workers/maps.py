@@ -10,6 +10,8 @@ from typing import Union
 
 import numpy as np
 
+from pptbf_db.files import atomic_path
+
 from .errors import InputError
 
 logger = logging.getLogger(__name__)
@@ -48,6 +50,22 @@ class Material:
     def maps(self) -> dict[str, np.ndarray]:
         """The maps that are present, by name."""
         return {k: getattr(self, k) for k in MAP_NAMES if getattr(self, k) is not None}
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict]:
+        """(maps as float32 arrays, JSON-able metadata): the material stored without files (see from_arrays)."""
+        arrays = {k: v.astype(np.float32) for k, v in self.maps().items()}
+        meta = {"name": self.name, "size": list(self.size), "height_scale": self.height_scale,
+                "normal_tilt": list(self.normal_tilt), "sources": self.sources, "meta": self.meta,
+                "maps": sorted(arrays)}
+        return arrays, meta
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict) -> "Material":
+        """The material :meth:`to_arrays` stored."""
+        return cls(albedo=arrays["albedo"], normal=arrays.get("normal"), roughness=arrays.get("roughness"),
+                   height=arrays.get("height"), metallic=arrays.get("metallic"), name=meta["name"],
+                   sources=meta.get("sources", {}), height_scale=float(meta.get("height_scale", 1.0)),
+                   meta=meta.get("meta", {}), normal_tilt=tuple(meta.get("normal_tilt", (0.0, 0.0))))
 
 
 # ----------------------------------------------------------------------------- reading
@@ -223,18 +241,15 @@ def write_image(path: str | Path, array: np.ndarray, bits: int | str = 8) -> Pat
         spec.attribute("oiio:UnassociatedAlpha", 1)
     if ext in (".jpg", ".jpeg"):
         spec.attribute("Compression", "jpeg:95")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.stem}.tmp{p.suffix}")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None or not out.open(str(tmp), spec):
-        raise InputError(f"{p}: cannot open for writing ({oiio.geterror().strip()})")
-    ok = out.write_image(np.ascontiguousarray(pix))
-    err = out.geterror() if not ok else ""
-    out.close()
-    if not ok:
-        tmp.unlink(missing_ok=True)
-        raise InputError(f"{p}: write failed ({err.strip()})")
-    tmp.replace(p)
+    with atomic_path(p) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise InputError(f"{p}: cannot open for writing ({oiio.geterror().strip()})")
+        ok = out.write_image(np.ascontiguousarray(pix))
+        err = out.geterror() if not ok else ""
+        out.close()
+        if not ok:
+            raise InputError(f"{p}: write failed ({err.strip()})")
     return p
 
 

@@ -1,8 +1,13 @@
-"""The decomposition tree: nested binary masks, each child inside its parent."""
+"""The decomposition tree: nested binary masks, each child inside its parent.
+
+A tree stores itself as a JSON-able document plus named arrays (:meth:`MaskNode.to_arrays`, read back by
+:meth:`MaskNode.from_arrays`): masks, soft mattes and large meta arrays (instance labels) go to the arrays, the
+rest to the document; the caller decides where both are written.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -49,6 +54,65 @@ class MaskNode:
             "shares": self.shares,
             "children": [c.describe() for c in self.children],
         }
+
+
+    def to_arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(document, arrays): the tree's ids, methods, shares and meta as JSON-able data (with a ``summary``),
+        its masks (uint8), mattes (float32) and meta arrays of more than 64 values as named arrays."""
+        arrays: dict[str, np.ndarray] = {}
+
+        def doc(n: MaskNode) -> dict:
+            key = array_key(n.id)
+            arrays[f"mask_{key}"] = np.asarray(n.mask, dtype=np.uint8)
+            if n.alpha is not None:
+                arrays[f"alpha_{key}"] = np.asarray(n.alpha, dtype=np.float32)
+            meta = {}
+            for k, v in n.meta.items():
+                if isinstance(v, np.ndarray) and v.size > 64:
+                    arrays[f"meta_{key}__{array_key(k)}"] = v
+                    meta[k] = {"npz": f"meta_{key}__{array_key(k)}"}
+                else:
+                    meta[k] = _plain(v)
+            return {"id": n.id, "method": n.method, "shares": _plain(n.shares), "meta": meta,
+                    "children": [doc(c) for c in n.children]}
+
+        return {"tree": doc(self), "summary": self.describe()}, arrays
+
+    @classmethod
+    def from_arrays(cls, document: dict, arrays: dict[str, np.ndarray]) -> "MaskNode":
+        """The tree :meth:`to_arrays` stored."""
+
+        def build(d: dict) -> MaskNode:
+            key = array_key(d["id"])
+            meta = {k: arrays[v["npz"]] if isinstance(v, dict) and set(v) == {"npz"} else v
+                    for k, v in d.get("meta", {}).items()}
+            return cls(id=d["id"], mask=arrays[f"mask_{key}"].astype(bool), method=d.get("method", "leaf"),
+                       children=[build(c) for c in d.get("children", [])], shares=d.get("shares"),
+                       alpha=arrays.get(f"alpha_{key}"), meta=meta)
+
+        return build(document["tree"])
+
+
+def array_key(text: str) -> str:
+    """A node id (or meta key) as part of an array name: letters, digits, '-', '_' and '.' kept, the rest '_'."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)
+
+
+def _plain(v: Any) -> Any:
+    """JSON-able form of a meta value: numpy scalars and small arrays as numbers and lists."""
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _plain(v.tolist())
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v)
+    return v
 
 
 def root_node(height: int, width: int) -> MaskNode:

@@ -8,6 +8,7 @@ import os
 import sys
 from pathlib import Path
 
+from pptbf_db.files import write_text
 from workers.errors import InputError, ManifestError
 
 logger = logging.getLogger("proceduralize")
@@ -25,10 +26,7 @@ def remember_job(name: str, database: Path) -> None:
     try:
         known = json.loads(reg.read_text(encoding="utf-8")) if reg.is_file() else {}
         known[name] = str(Path(database).resolve())
-        reg.parent.mkdir(parents=True, exist_ok=True)
-        tmp = reg.with_name(f".{reg.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(known, indent=1), encoding="utf-8")
-        tmp.replace(reg)
+        write_text(reg, json.dumps(known, indent=1))
     except (OSError, ValueError) as exc:
         logger.debug("job registry %s not updated: %s", reg, exc)
 
