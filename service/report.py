@@ -21,7 +21,8 @@ from typing import Any, Callable
 import numpy as np
 
 from pptbf_db.errors import ProceduralizeError
-from service.pipeline import load_working_material, safe_name
+from service.folder import MaterialFolder, safe_name
+from service.pipeline import load_working_material
 from service.stages import STAGE_NAMES
 from workers.errors import InputError
 
@@ -162,7 +163,7 @@ def _load_graph(mdir: Path):
     """The published material.json, else the recomposed one; None if neither exists."""
     from workers import graph
 
-    for p in (mdir / "material.json", mdir / "recompose" / "material.json"):
+    for p in (MaterialFolder(mdir).published, MaterialFolder(mdir).recomposed):
         if p.is_file():
             return graph.load(p), p
     return None, None
@@ -179,7 +180,7 @@ def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -
     """Input maps (load stage) vs procedural maps at the working size, and their renders."""
     from workers import graph
 
-    inp = load_working_material(mdir).maps() if (mdir / "load" / "maps.npz").is_file() else {}
+    inp = load_working_material(mdir).maps() if MaterialFolder(mdir).working_maps.is_file() else {}
     mat, _ = _load_graph(mdir)
     proc = {}
     if mat is not None:
@@ -213,14 +214,14 @@ def _maps_section(page: _Page, mdir: Path, opts: ReportOptions, summary: dict) -
 
 def _tree_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
     """The decomposition tree as a nested list with mask thumbnails, split methods and coverage."""
-    doc = _read_json(mdir / "decompose" / "tree.json")
+    doc = _read_json(MaterialFolder(mdir).tree)
     fits = {}
-    for p in sorted((mdir / "masks").glob("*.json")) if (mdir / "masks").is_dir() else []:
+    for p in MaterialFolder(mdir).mask_fits():
         d = _read_json(p)
         fits[d.get("node", p.stem)] = d.get("fit", {})
 
     def item(s: dict) -> str:
-        png = mdir / "decompose" / "masks" / f"{safe_name(s['id'])}.png"
+        png = MaterialFolder(mdir).mask_png(s["id"])
         img = ""
         if png.is_file():
             from workers.maps import read_image
@@ -243,7 +244,7 @@ def _tree_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
 
 def _recompose_section(mdir: Path, material: dict | None = None) -> str:
     """Loss before/after the recomposition, iterations, device (and why, when not the one asked for), seconds."""
-    rep = _read_json(mdir / "recompose" / "report.json")
+    rep = _read_json(MaterialFolder(mdir).recompose_report)
     before, after = rep.get("loss_before"), rep.get("loss_after")
     change = f"{100 * (after - before) / before:+.1f}%" if before and after is not None else "-"
     rows = [("loss before", _num(before)), ("loss after", _num(after)), ("change", change),
@@ -329,11 +330,11 @@ def _errors_section(store, job: str, material: dict) -> str:
 def _outputs_section(page: _Page, mdir: Path, opts: ReportOptions) -> str:
     """The job's own renders (maps/<tag>/preview.png) and a link to the published material.json."""
     figs = []
-    for prev in sorted((mdir / "maps").glob("*/preview.png")) if (mdir / "maps").is_dir() else []:
+    for prev in MaterialFolder(mdir).previews():
         href = page.link(prev)
         figs.append(f'<figure><a href="{_e(href)}"><img src="{_e(href)}" width="{2 * opts.display}" '
                     f'alt="{_e(prev.parent.name)}"></a><figcaption>{_e(prev.parent.name)}</figcaption></figure>')
-    link = page.link(mdir / "material.json")
+    link = page.link(MaterialFolder(mdir).published)
     head = f'<p>graph: <a href="{_e(link)}">material.json</a></p>' if link else ""
     return head + ("".join(figs) or '<p class="muted">no output renders</p>')
 
@@ -445,7 +446,7 @@ def _material_page(store, job: dict, material: dict, root: Path, opts: ReportOpt
     parts.append(f"<p class='muted'>page built in {time.perf_counter() - t0:.1f} s</p>")
     (root / summary["page"]).write_text(_html(f"{material['name']} - {job['name']}", "".join(parts)),
                                         encoding="utf-8")
-    rec = mdir / "recompose" / "report.json"
+    rec = MaterialFolder(mdir).recompose_report
     if rec.is_file():
         r = _read_json(rec)
         summary["loss"] = (r.get("loss_before"), r.get("loss_after"))
