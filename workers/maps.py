@@ -488,16 +488,23 @@ def load_material(
     return mat
 
 
+def encode_map(name: str, arr: np.ndarray) -> np.ndarray:
+    """A map as an image file holds it: albedo in sRGB, normal xyz mapped from [-1, 1] to [0, 1], others as they
+    are (the writer clips to its range)."""
+    if name == "albedo":
+        return linear_to_srgb(arr)
+    if name == "normal":
+        return np.clip(arr * 0.5 + 0.5, 0.0, 1.0)
+    return arr
+
+
 def write_maps(maps: dict[str, np.ndarray], folder: str | Path, bits: int = 8) -> dict[str, Path]:
     """Write evaluated maps as PNG, one file per map named after it: albedo sRGB and normal encoded 0..1 at
     ``bits``, every other map 16-bit grey (clipped to [0, 1], with a warning when it reached outside)."""
     files: dict[str, Path] = {}
     for name, arr in maps.items():
-        if name == "albedo":
-            data, b = linear_to_srgb(arr), bits
-        elif name == "normal":
-            data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
-        else:
+        data, b = encode_map(name, arr), bits
+        if name not in ("albedo", "normal"):
             lo, hi = float(arr.min()), float(arr.max())
             if lo < 0.0 or hi > 1.0:
                 logger.warning("map %s spans [%.3g, %.3g]: clipped to [0, 1] in the PNG", name, lo, hi)
@@ -517,13 +524,8 @@ def save_material(material: Material, folder: str | Path, bits: int | str = 8) -
     hbits = bits if ext == ".exr" else 16
     written: dict[str, Path] = {}
     for key, arr in material.maps().items():
-        if key == "albedo":
-            data, b = linear_to_srgb(arr), bits
-        elif key == "normal":
-            data, b = np.clip(arr * 0.5 + 0.5, 0.0, 1.0), bits
-        else:
-            data, b = arr, hbits if key == "height" else bits
-        written[key] = write_image(output_file(out, key, ext), data, bits=b)
+        written[key] = write_image(output_file(out, key, ext), encode_map(key, arr),
+                                   bits=hbits if key == "height" else bits)
     info = {"name": material.name, "height_scale": material.height_scale, "size": list(material.size),
             "albedo_colorspace": "srgb", "normal_convention": "opengl", "sources": material.sources,
             "files": {k: p.name for k, p in written.items()}}
