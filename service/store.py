@@ -351,21 +351,20 @@ class Store:
 
     def items(self, job: str, material: str | None = None, stage: str | None = None) -> list[dict]:
         """Stage item rows of a job (optionally one material / stage)."""
-        where, args = "job = ?", [job]
-        if material is not None:
-            where, args = where + " AND material = ?", args + [material]
-        if stage is not None:
-            where, args = where + " AND stage = ?", args + [stage]
-        return list(self.db["stages"].rows_where(where, args, order_by="id"))
+        return self._rows("stages", job, material, stage)
 
     def artefacts(self, job: str, material: str | None = None, stage: str | None = None) -> list[dict]:
         """Artefact rows (paths relative to the job's output folder)."""
+        return self._rows("artefacts", job, material, stage)
+
+    def _rows(self, table: str, job: str, material: str | None, stage: str | None) -> list[dict]:
+        """Rows of ``table`` for a job, optionally one material and stage, in insertion order."""
         where, args = "job = ?", [job]
         if material is not None:
             where, args = where + " AND material = ?", args + [material]
         if stage is not None:
             where, args = where + " AND stage = ?", args + [stage]
-        return list(self.db["artefacts"].rows_where(where, args, order_by="id"))
+        return list(self.db[table].rows_where(where, args, order_by="id"))
 
     def errors(self, job: str, material: str | None = None) -> list[dict]:
         """Every recorded failed attempt of a job."""
