@@ -19,6 +19,7 @@ import torch
 
 from . import graph as G
 from .nodes import NODE_TYPES, NodeType, as3
+from .nodes.stack import IDENTITY_FILTER
 
 if TYPE_CHECKING:
     from .recompose import RecomposeConfig
@@ -300,7 +301,7 @@ class TorchGraph:
                 filters = node["params"].setdefault("filters", [])
                 i = int(path[1])
                 while len(filters) <= i:
-                    filters.append({"a": 1.0, "b": 0.0, "sigma": 0.0})
+                    filters.append(dict(IDENTITY_FILTER))
                 filters[i][path[2]] = v
             elif path[0] == "sigmas":
                 sig = node["params"].setdefault("sigmas", [])

@@ -19,6 +19,8 @@ from ..errors import GraphError
 from .base import NodeType, Param, Slot, gaussian_blur
 
 IDENTITY_FILTER = {"a": 1.0, "b": 0.0, "sigma": 0.0}
+#: how the recomposition optimises each filter value
+FILTER_KINDS = {"a": "value", "b": "offset", "sigma": "sigma"}
 
 
 @dataclass
@@ -120,9 +122,7 @@ class FilterStack(NodeType):
         filters = stored + [{} for _ in range(k - len(stored))]
         keys = []
         for i, f in enumerate(filters):
-            keys.append((f"filters.{i}.a", f.get("a", 1.0), "value"))
-            keys.append((f"filters.{i}.b", f.get("b", 0.0), "offset"))
-            keys.append((f"filters.{i}.sigma", f.get("sigma", 0.0), "sigma"))
+            keys += [(f"filters.{i}.{k}", f.get(k, dflt), FILTER_KINDS[k]) for k, dflt in IDENTITY_FILTER.items()]
         return keys + [("c", params.get("c", 1.0), "offset"), ("d", params.get("d", 0.0), "offset")]
 
     def prepare(self, node, t):
