@@ -46,17 +46,43 @@ def add_mask_node(mat: ProceduralMaterial, node_id: str, fit: MaskFit, working_w
     return mat.add(node_id, "pptbf", fit.node_params(ww, pin_shift), **ins)
 
 
-def add_instances_node(mat: ProceduralMaterial, node_id: str, parent: str, shares, separate: float = 0.0) -> str:
-    """Add an "instances" node (HxWxK one-hot) over mask node `parent`; pick cluster i with a "channel" node."""
+def add_instances_node(mat: ProceduralMaterial, node_id: str, parent: str, shares, separate: float = 0.0,
+                       cells: str | None = None) -> str:
+    """Add an "instances" node (HxWxK one-hot) over mask node `parent`; pick cluster i with a "channel" node.
+    With ``cells`` (a cells node, :func:`add_cells_node`) each PPTBF cell draws its kind; else each piece of the
+    parent, cut at its necks (``separate``)."""
     params: dict = {"shares": [float(x) for x in check_shares(shares)]}
+    if cells is not None:
+        return mat.add(node_id, "instances", params, parent=parent, cells=cells)
     if separate > 0:
         params["separate"] = round(float(separate), 3)
     return mat.add(node_id, "instances", params, parent=parent)
 
 
-def add_piece_offsets(mat: ProceduralMaterial, node_id: str, leaf: str, labels: str, stats: PieceStats) -> str:
-    """Add ``piece_offsets`` over ``labels`` and an ``add`` of it to node ``leaf``; returns the add node's id."""
-    off = mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": stats.to_dict()["cov"]}, labels=labels)
+def pptbf_source(mat: ProceduralMaterial, node_id: str) -> str | None:
+    """The ``pptbf`` mask node whose cells make up mask node ``node_id`` (the node itself, or the complement
+    ``level`` of one), else None."""
+    n = mat.node(node_id)
+    p = n["params"]
+    if n["type"] == "pptbf" and p.get("output", "mask") == "mask" and "parent" not in n["inputs"]:
+        return node_id
+    if n["type"] == "level" and p.get("a") == -1.0 and p.get("d") == 1.0 and "input" in n["inputs"]:
+        return pptbf_source(mat, n["inputs"]["input"])
+    return None
+
+
+def add_cells_node(mat: ProceduralMaterial, node_id: str, source: str) -> str:
+    """A ``pptbf`` node giving the cells of ``pptbf`` node ``source`` (same parameters and realisation)."""
+    p = mat.node(source)["params"]
+    params = {k: p[k] for k in ("params", "ref_width", "shift") if k in p}
+    return mat.add(node_id, "pptbf", {**params, "output": "cells", "stream": p.get("stream") or source})
+
+
+def add_piece_offsets(mat: ProceduralMaterial, node_id: str, leaf: str, pieces: dict[str, str],
+                      stats: PieceStats) -> str:
+    """Add ``piece_offsets`` over ``pieces`` (``{"cells": node}`` or ``{"labels": node}``) and an ``add`` of it to
+    node ``leaf``; returns the add node's id."""
+    off = mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": stats.to_dict()["cov"]}, **pieces)
     return mat.add(node_id, "add", {}, in0=leaf, in1=off)
 
 
@@ -98,18 +124,20 @@ def build_material(material: Any, tree: MaskNode, noises: Mapping, fits: Mapping
         if node.is_leaf:
             return
         if node.method == "instances":
-            cells, sep = abs_mask(node, parent), float(node.meta.get("separate", 0.0))
-            inst = add_instances_node(proc, graph_id("inst", node.id), cells,
-                                      node.shares or [1.0 / len(node.children)] * len(node.children), sep)
+            area, sep = abs_mask(node, parent), float(node.meta.get("separate", 0.0))
+            src = pptbf_source(proc, area)
+            cells = add_cells_node(proc, graph_id("cells", node.id), src) if src else None
+            inst = add_instances_node(proc, graph_id("inst", node.id), area,
+                                      node.shares or [1.0 / len(node.children)] * len(node.children), sep, cells)
             for i, c in enumerate(node.children):
                 mask_nodes[c.id] = proc.add(graph_id("mask", c.id), "channel", {"channels": [i]}, input=inst)
             varied = [(c.id, m) for c in node.children for m in leaf_nodes.get(c.id, {}) if (c.id, m) in pieces]
-            if varied:   # one numbering of the pieces, one offset draw per (kind, map)
-                labels = proc.add(graph_id("pieces", node.id), "piece_labels", {"separate": round(sep, 3)},
-                                  parent=cells)
+            if varied:   # one numbering of the pieces (the PPTBF's cells when it has them), one draw per (kind, map)
+                by = {"cells": cells} if cells else {"labels": proc.add(
+                    graph_id("pieces", node.id), "piece_labels", {"separate": round(sep, 3)}, parent=area)}
                 for cid, m in varied:
                     leaf_nodes[cid][m] = add_piece_offsets(proc, graph_id("leaf", cid, m), leaf_nodes[cid][m],
-                                                           labels, PieceStats.from_dict(pieces[(cid, m)]))
+                                                           by, PieceStats.from_dict(pieces[(cid, m)]))
         else:
             fitted: list[str] = []
             remainder: str | None = None

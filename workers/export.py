@@ -41,8 +41,9 @@ def encode_normal(normal: np.ndarray) -> np.ndarray:
 
 
 def export_maps(maps: dict[str, np.ndarray], folder: str | Path, name: str = "material",
-                materialx: bool = True, bits: int = 8) -> ExportedFiles:
-    """Write glTF-ready maps (sRGB base colour, OpenGL normal, packed ORM) and, optionally, a MaterialX document."""
+                materialx: bool = True, bits: int = 8, procedural=None) -> ExportedFiles:
+    """Write glTF-ready maps (sRGB base colour, OpenGL normal, packed ORM) and, optionally, a MaterialX document
+    (``procedural``: see :func:`write_materialx`)."""
     from .maps import linear_to_srgb, write_image
 
     for req in ("albedo", "normal", "roughness"):
@@ -64,13 +65,24 @@ def export_maps(maps: dict[str, np.ndarray], folder: str | Path, name: str = "ma
         h = maps["height"]
         write_image(height, (h - h.min()) / max(float(h.max() - h.min()), 1e-8), bits=16)
     mtlx = write_materialx(output_file(out, name, ".mtlx"), name, base.name, nrm.name, rough.name,
-                           "metallic" in maps and orm.name or None) if materialx else None
+                           "metallic" in maps and orm.name or None, procedural=procedural) if materialx else None
     return ExportedFiles(out, base, nrm, orm, rough, height, mtlx)
 
 
 def write_materialx(path: str | Path, name: str, base_color: str, normal: str, roughness: str,
-                    orm: str | None = None) -> Path:
-    """A MaterialX 1.38+ document: image nodes -> standard_surface and UsdPreviewSurface, both as materials."""
+                    orm: str | None = None, procedural=None) -> Path:
+    """A MaterialX 1.38+ document: image nodes -> standard_surface and UsdPreviewSurface, both as materials.
+
+    ``procedural``: a callable given the document (before validation) that adds a procedural material to it
+    (``workers.mtlx.procedural.add_material``); the document is then validated against our node library too."""
+    doc = materialx_document(name, base_color, normal, roughness, orm)
+    if procedural is not None:
+        procedural(doc)
+    return write_document(doc, path, name)
+
+
+def materialx_document(name: str, base_color: str, normal: str, roughness: str, orm: str | None = None):
+    """The baked-maps MaterialX document (``M_<name>``: standard_surface; ``M_<name>_usd``: UsdPreviewSurface)."""
     import MaterialX as mx
 
     doc = mx.createDocument()
@@ -134,9 +146,17 @@ def write_materialx(path: str | Path, name: str, base_color: str, normal: str, r
     if metal_out is not None:
         bind(usd, "metallic", "float", metal_out)
     doc.addMaterialNode(f"M_{name}_usd", usd)
+    logger.debug("MaterialX material %s", mat.getName())
+    return doc
+
+
+def write_document(doc, path: str | Path, name: str) -> Path:
+    """Validate ``doc`` against the standard node definitions (and the XIncluded libraries), then write it."""
+    import MaterialX as mx
 
     check = mx.createDocument()
-    mx.readFromXmlString(check, mx.writeToXmlString(doc))
+    search = mx.FileSearchPath(str(Path(path).resolve().parent))
+    mx.readFromXmlString(check, mx.writeToXmlString(doc), search)
     lib = mx.createDocument()
     mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
     check.importLibrary(lib)  # validate against the standard node definitions, not just the syntax
@@ -145,5 +165,5 @@ def write_materialx(path: str | Path, name: str, base_color: str, normal: str, r
         raise InputError(f"MaterialX document for {name!r} does not validate: {msg}")
     p = Path(path)
     mx.writeToXmlFile(doc, str(p))
-    logger.info("wrote MaterialX %s (material %s)", p, mat.getName())
+    logger.info("wrote MaterialX %s", p)
     return p

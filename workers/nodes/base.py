@@ -21,7 +21,8 @@ from scipy import ndimage
 
 from ..errors import GraphError
 
-if TYPE_CHECKING:  # the torch view of a node, only for annotations
+if TYPE_CHECKING:  # the torch view of a node and the MaterialX builder, only for annotations
+    from ..mtlx.procedural import Builder
     from ..torch_graph import NodeTorch
 
 #: kinds of declared parameters: a number, a number or a list of numbers (per channel), a list of numbers (one
@@ -183,6 +184,13 @@ class NodeType:
     def forward(self, params: dict, ins: dict, t: "NodeTorch"):
         """The node's output as a torch tensor (HxWxC) from its inputs' tensors."""
         raise NotImplementedError(f"node type {self.name!r} has no torch form")
+
+    # -------------------------------------------------------------- MaterialX form
+    def materialx(self, b: "Builder", node: dict, node_id: str, offset: tuple[int, int]) -> list | None:
+        """The node in a procedural MaterialX graph: one float value per channel, built with ``b``
+        (``workers.mtlx.procedural.Builder``) for the pixel ``offset`` pixels away; None: no pointwise form, the
+        exporter bakes the node's output at the exported size and seed."""
+        return None
 
 
 NODE_TYPES: dict[str, NodeType] = {}

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import GraphError
-from .base import NodeType, Param, Slot, as3, gaussian_blur, register_node
+from .base import NodeType, Param, Slot, as3, gaussian_blur, numbers, register_node
 
 #: the largest blur sigma (working-size pixels) a file may hold
 MAX_SIGMA = 1e4
@@ -26,6 +26,9 @@ class ConstantNode(NodeType):
     def evaluate(self, params, inputs, ctx, node_id):
         v = np.atleast_1d(np.asarray(params["value"], dtype=np.float32))
         return np.broadcast_to(v, (ctx.height, ctx.width, v.size)).copy()
+
+    def materialx(self, b, node, node_id, offset):
+        return [b.const(float(x), node_id) for x in np.atleast_1d(np.asarray(node["params"]["value"], np.float32))]
 
 
 @register_node
@@ -52,6 +55,17 @@ class LevelNode(NodeType):
     def forward(self, params, ins, t):
         out = ins["input"] * t.value("a", self.get(params, "a")) + t.value("d", self.get(params, "d"))
         return out.clamp(0.0, 1.0) if self.get(params, "clamp") else out
+
+    def materialx(self, b, node, node_id, offset):
+        p = node["params"]
+        x = b.value(node["inputs"]["input"], offset)
+        a = [float(v) for v in numbers(self.get(p, "a"), f"{node_id}.a").astype(np.float32)]
+        d = [float(v) for v in numbers(self.get(p, "d"), f"{node_id}.d").astype(np.float32)]
+        x, a, d = (list(v) for v in _broadcast_lists(x, a, d))
+        out = [b.op("add", node_id, b.op("multiply", node_id, xi, ai), di) for xi, ai, di in zip(x, a, d)]
+        if self.get(p, "clamp"):
+            out = [b.op("clamp", node_id, o) for o in out]
+        return out
 
 
 @register_node
@@ -140,6 +154,34 @@ class BlendNode(NodeType):
             raise GraphError(f"blend node {t.node_id} has no inputs")
         return out
 
+    def materialx(self, b, node, node_id, offset):
+        p, ins = node["params"], b.inputs(node, offset)
+        if "mask" in ins:
+            if float(self.get(p, "sigma")) > 0.0:
+                return None                  # a blurred mask is not pointwise: baked
+            m = ins["mask"][0]
+            fg, bg = _broadcast_lists(ins["fg"], ins["bg"])
+            return [b.op("mix", node_id, fg=f, bg=g, mix=m) for f, g in zip(fg, bg)]
+        n = sum(1 for k in ins if k.startswith("mask"))
+        if any(float(s) > 0.0 for s in self.get(p, "sigmas")[:n]):
+            return None
+        masks = [ins[f"mask{i}"][0] for i in range(n)]
+        children = list(_broadcast_lists(*(ins[f"child{i}"] for i in range(n))))
+
+        def add(x, y):
+            return b.op("add", node_id, x, y)
+
+        out = [None] * len(children[0])
+        total = None
+        for m, child in zip(masks, children):
+            out = [b.op("multiply", node_id, c, m) if o is None else add(o, b.op("multiply", node_id, c, m))
+                   for o, c in zip(out, child)]
+            total = m if total is None else add(total, m)
+        if self.get(p, "normalise"):
+            den = b.op("max", node_id, total, NORMALISE_EPS)
+            out = [b.op("divide", node_id, o, den) for o in out]
+        return out
+
 
 @register_node
 class ChannelNode(NodeType):
@@ -163,6 +205,12 @@ class ChannelNode(NodeType):
 
     def forward(self, params, ins, t):
         return ins["input"][..., list(params["channels"])]
+
+    def materialx(self, b, node, node_id, offset):
+        x = b.value(node["inputs"]["input"], offset)
+        if max(node["params"]["channels"]) >= len(x):
+            raise GraphError(f"channel node {node_id}: input has {len(x)} channels")
+        return [x[c] for c in node["params"]["channels"]]
 
 
 @register_node
@@ -189,6 +237,16 @@ class AddNode(NodeType):
             out = out + ins[k]
         return out
 
+    def materialx(self, b, node, node_id, offset):
+        ins = b.inputs(node, offset)
+        if not ins:
+            raise GraphError(f"add node {node_id} has no inputs")
+        vals = list(_broadcast_lists(*(ins[k] for k in sorted(ins))))
+        out = vals[0]
+        for v in vals[1:]:
+            out = [b.op("add", node_id, o, x) for o, x in zip(out, v)]
+        return out
+
 
 @register_node
 class ClampNode(NodeType):
@@ -204,3 +262,16 @@ class ClampNode(NodeType):
 
     def forward(self, params, ins, t):
         return ins["input"].clamp(float(self.get(params, "lo")), float(self.get(params, "hi")))
+
+    def materialx(self, b, node, node_id, offset):
+        lo, hi = float(self.get(node["params"], "lo")), float(self.get(node["params"], "hi"))
+        return [b.op("clamp", node_id, **{"in": x, "low": lo, "high": hi})
+                for x in b.value(node["inputs"]["input"], offset)]
+
+
+def _broadcast_lists(*values: list) -> list[list]:
+    """Per-channel lists broadcast like numpy's HxWx1 against HxWxC (a single entry repeats)."""
+    n = max(len(v) for v in values)
+    if any(len(v) not in (1, n) for v in values):
+        raise GraphError(f"cannot broadcast channel counts {[len(v) for v in values]}")
+    return [list(v) * n if len(v) == 1 else list(v) for v in values]

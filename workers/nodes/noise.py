@@ -30,3 +30,7 @@ class NoiseNode(FilterStack):
             return synthesize_layers(model, ctx.width, ctx.height, scale=ctx.px_scale, seed=seed)
         matched = synthesize(model, ctx.width, ctx.height, scale=ctx.px_scale, seed=seed)
         return NoiseLayers(base=model.base, layers=[], matched=matched)
+
+    def materialx(self, b, node, node_id, offset):
+        """A random-phase synthesis is not pointwise: baked into a periodic tile at the exported size and seed."""
+        return b.tile(node_id, offset, reason="noise")

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import GraphError
 from .base import EvalContext, NodeType, Param, register_node
-from .instances import SEPARATE, cell_pieces
+from .instances import SEPARATE, cell_normal, cell_pieces, cell_stream
 
 
 def psd_root(cov: np.ndarray) -> np.ndarray:
@@ -33,11 +33,12 @@ class PieceLabelsNode(NodeType):
 
 @register_node
 class PieceOffsetsNode(NodeType):
-    """One offset per piece of input ``labels`` (a ``piece_labels`` node), drawn from N(0, ``cov``) with the node's
-    seed: HxWxC (C = the size of cov), zero outside the pieces."""
+    """One offset per piece drawn from N(0, ``cov``) with the node's seed, HxWxC (C = the size of cov): per piece
+    of input ``labels`` (a ``piece_labels`` node; zero outside the pieces), or per cell of input ``cells`` (a
+    ``pptbf`` node with ``output: cells``; pointwise, as a shader draws it)."""
 
     name = "piece_offsets"
-    inputs = ("labels",)
+    inputs = ("labels", "cells")
     params = (Param("cov", "data", required=True, doc="C x C covariance of the pieces' offsets"),)
 
     def check(self, params: dict) -> None:
@@ -52,11 +53,32 @@ class PieceOffsetsNode(NodeType):
                              "a non-negative diagonal")
 
     def evaluate(self, params, inputs, ctx: EvalContext, node_id):
-        if "labels" not in inputs:
-            raise GraphError(f"piece_offsets node {node_id} needs input 'labels'")
-        lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
         f = psd_root(np.asarray(params["cov"], np.float64))
+        if "cells" in inputs:
+            stream = cell_stream(ctx, node_id)
+            z = np.stack([cell_normal(inputs["cells"][..., 0], stream, k) for k in range(f.shape[0])], axis=-1)
+            return (z @ f.T).astype(np.float32)
+        if "labels" not in inputs:
+            raise GraphError(f"piece_offsets node {node_id} needs input 'labels' or 'cells'")
+        lab = np.rint(inputs["labels"][..., 0]).astype(np.int64)
         n = int(lab.max()) if lab.size else 0
         table = ctx.rng(node_id).standard_normal((n + 1, f.shape[0])) @ f.T
         table[0] = 0.0
         return table[lab].astype(np.float32)
+
+    def materialx(self, b, node, node_id, offset):
+        """Per-cell offsets: ``cell_normal`` draws mixed by the covariance's root (per-label offsets: baked)."""
+        if "cells" not in node["inputs"]:
+            return None
+        cells = b.value(node["inputs"]["cells"], offset)[0]
+        f = psd_root(np.asarray(node["params"]["cov"], np.float64))
+        stream = ("integer", str(cell_stream(b.ctx, node_id)))
+        z = [b.op("cell_normal", node_id, cells=cells, stream=stream, seed=("interface", b.seed_in),
+                  k=("integer", str(k))) for k in range(f.shape[0])]
+        out = []
+        for row in f:
+            acc = b.op("multiply", node_id, z[0], float(row[0]))
+            for zk, w in zip(z[1:], row[1:]):
+                acc = b.op("add", node_id, acc, b.op("multiply", node_id, zk, float(w)))
+            out.append(acc)
+        return out

@@ -1,0 +1,125 @@
+"""Run a procedural MaterialX graph's generated GLSL on the CPU and compare it with proceduralize's own render.
+
+MaterialX's GLSL generator writes the shader of one node graph output; :mod:`workers.mtlx.glsl` draws it over the
+exported size on llvmpipe with the baked tiles bound; the result is compared with ``graph.evaluate`` of the same
+material at the same size, seed and scale.
+"""
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from . import glsl
+from .library import LIBRARY
+
+logger = logging.getLogger(__name__)
+
+_SAMPLER = re.compile(r"uniform\s+sampler2D\s+(\w+)\s*;")
+
+
+@dataclass
+class Shader:
+    """The generated GLSL of one output: vertex and pixel stages, and the image nodes' sampler uniforms."""
+
+    vertex: str
+    pixel: str
+    samplers: list[str]
+
+
+def with_libraries(doc):
+    """A copy of ``doc`` with the standard node definitions and ours imported (what code generation needs)."""
+    import MaterialX as mx
+
+    from .library import DEFS_FILE
+
+    out = mx.createDocument()
+    out.copyContentFrom(doc)
+    std = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), std)
+    ours = mx.createDocument()
+    mx.readFromXmlFile(ours, str(DEFS_FILE))
+    out.importLibrary(std)
+    out.importLibrary(ours)
+    return out
+
+
+def generate_glsl(doc, output) -> Shader:
+    """GLSL (MaterialX's genglsl) of a node graph output of ``doc`` (a document with its libraries imported:
+    :func:`with_libraries`)."""
+    import MaterialX as mx
+    import MaterialX.PyMaterialXGenGlsl as mx_glsl
+    import MaterialX.PyMaterialXGenShader as mx_gen
+
+    gen = mx_glsl.GlslShaderGenerator.create()
+    ctx = mx_gen.GenContext(gen)
+    ctx.registerSourceCodeSearchPath(mx.getDefaultDataSearchPath())
+    ctx.registerSourceCodeSearchPath(mx.FilePath(str(LIBRARY)))
+    shader = gen.generate(mx.createValidName(output.getNamePath()), output, ctx)
+    pixel = shader.getSourceCode(mx_gen.PIXEL_STAGE)
+    return Shader(shader.getSourceCode(mx_gen.VERTEX_STAGE), pixel, _SAMPLER.findall(pixel))
+
+
+def read_tile(path: Path) -> np.ndarray:
+    """A baked tile (float RGBA EXR) as HxWx4 float32."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"{path}: cannot read the baked tile ({oiio.geterror()})")
+    try:
+        a = inp.read_image(0, 0, 0, 4, "float")
+    finally:
+        inp.close()
+    return np.asarray(a, dtype=np.float32).reshape(inp.spec().height, inp.spec().width, 4)
+
+
+def render_output(doc, output, tiles: dict[str, Path], width: int, height: int,
+                  uniforms: dict | None = None) -> tuple[np.ndarray, float]:
+    """Render one node graph output at width x height: (HxWxC float32 with C = the output's channels, seconds)."""
+    sh = generate_glsl(doc, output)
+    textures, nearest = {}, set()
+    graph = output.getParent()
+    for s in sh.samplers:
+        node = s[:-len("_file")] if s.endswith("_file") else s
+        if node not in tiles:
+            raise InputError(f"generated shader samples {s!r}, which names no baked tile")
+        textures[s] = read_tile(tiles[node])
+        filt = graph.getNode(node).getInput("filtertype")
+        if filt is not None and filt.getValueString() == "closest":
+            nearest.add(s)
+    t0 = time.perf_counter()
+    rgba = glsl.render(sh.pixel, width, height, vertex=sh.vertex, uniforms=uniforms, textures=textures,
+                       nearest=frozenset(nearest))
+    seconds = time.perf_counter() - t0
+    n = {"float": 1, "vector2": 2, "color3": 3, "vector3": 3}.get(output.getType(), 4)
+    return rgba[..., :n], seconds
+
+
+#: the agreement the procedural document must reach with proceduralize's render (mean absolute difference)
+TOLERANCE = 2.0 / 255.0
+
+
+def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) -> dict[str, dict]:
+    """Render every map output of a :class:`~workers.mtlx.procedural.ProceduralGraph` and compare it with
+    ``maps`` (proceduralize's render at the same size, seed and scale): mean and max absolute difference, share
+    of pixels within 2/255, render seconds. Normals (``graph.sobel``) leave out the image's outer pixels: numpy's
+    Sobel wraps around the image, the shader reads the pattern on beyond it (a procedural material has no edge)."""
+    out = {}
+    full = with_libraries(doc)
+    for name, output in graph.outputs.items():
+        if name not in maps:
+            continue
+        got, seconds = render_output(full, full.getDescendant(output.getNamePath()), graph.tiles, width, height)
+        ref = np.asarray(maps[name], dtype=np.float32).reshape(got.shape)
+        d = np.abs(got - ref)
+        if name in graph.sobel and min(d.shape[:2]) > 2:
+            d = d[1:-1, 1:-1]
+        out[name] = {"mad": float(d.mean()), "max": float(d.max()),
+                     "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()), "seconds": round(seconds, 3)}
+    return out
