@@ -123,3 +123,61 @@ def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) ->
         out[name] = {"mad": float(d.mean()), "max": float(d.max()),
                      "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()), "seconds": round(seconds, 3)}
     return out
+
+
+# ---------------------------------------------------------------------------------------------- the PPTBF core
+
+_INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.M)
+
+
+def expand_includes(path: Path, seen: set | None = None) -> str:
+    """A GLSL file with its ``#include``s (relative to the including file, as MaterialX resolves nested ones)
+    written in, each file once."""
+    seen = set() if seen is None else seen
+
+    def sub(m: re.Match) -> str:
+        p = (path.parent / m.group(1)).resolve()
+        if p in seen:
+            return ""
+        seen.add(p)
+        return expand_includes(p, seen)
+
+    return _INCLUDE.sub(sub, Path(path).read_text(encoding="utf-8"))
+
+
+def pptbf_shader(function: str = "pptbf_value") -> str:
+    """A fragment shader writing the PPTBF core's ``function`` (pptbf_value: V; pptbf_cell: the cell key) at
+    base coordinates pixel / unit + shift, parameters from the uniform ``prm_u``."""
+    core = expand_includes(LIBRARY / "genglsl" / "lib" / "pptbf_core.glsl")
+    return f"""#version 400
+in vec2 texcoord;
+out vec4 color;
+uniform float prm_u[29];
+uniform vec2 size;
+uniform float unit;
+uniform vec2 shift;
+uniform float ref_width;
+{core}
+void main()
+{{
+    float i = texcoord.x * size.x - 0.5;
+    float j = (1.0 - texcoord.y) * size.y - 0.5;
+    float prm[29];
+    for (int k = 0; k < 29; ++k)
+        prm[k] = prm_u[k];
+    color = vec4({function}(i / unit + shift.x, j / unit + shift.y, ref_width, prm), 0.0, 0.0, 1.0);
+}}
+"""
+
+
+def render_pptbf(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), ref_width: int | None = None,
+                 function: str = "pptbf_value") -> tuple[np.ndarray, float]:
+    """The GLSL PPTBF over an image as ``pptbf_db.pptbf.evaluate`` lays it out (pixel_scale 1): (HxW float32,
+    seconds). ``function="pptbf_cell"`` gives the cell keys / 2^24."""
+    height = width if height is None else height
+    ref = float(ref_width or width)
+    t0 = time.perf_counter()
+    out = glsl.render(pptbf_shader(function), width, height, uniforms={
+        "prm_u": [float(x) for x in params], "size": (float(width), float(height)), "unit": ref,
+        "shift": (float(shift[0]), float(shift[1])), "ref_width": ref})
+    return out[..., 0].copy(), time.perf_counter() - t0

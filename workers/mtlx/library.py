@@ -202,8 +202,16 @@ def pptbf_ring_glsl_text() -> str:
     ring1 = vec4(r[4], r[5], r[6], r[7]);""")
 
 
+def pptbf_tables_text() -> str:
+    """The PPTBF's tables (``genglsl/lib/pptbf_tables.glsl``, see :mod:`workers.mtlx.tables`)."""
+    from .tables import glsl_tables
+
+    return glsl_tables()
+
+
 GENERATED = {DEFS_FILE: defs_text, LIBRARY / NODEDEFS[0].file: pptbf_glsl_text,
-             LIBRARY / NODEDEFS[1].file: pptbf_cells_glsl_text, LIBRARY / NODEDEFS[2].file: pptbf_ring_glsl_text}
+             LIBRARY / NODEDEFS[1].file: pptbf_cells_glsl_text, LIBRARY / NODEDEFS[2].file: pptbf_ring_glsl_text,
+             LIBRARY / "genglsl" / "lib" / "pptbf_tables.glsl": pptbf_tables_text}
 
 
 def write_library() -> list[Path]:
@@ -221,7 +229,8 @@ def write_library() -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     """Command line: rewrite the generated files of the node library."""
     argparse.ArgumentParser(description="Rewrite the generated files of the proceduralize MaterialX node library "
-                                        f"({DEFS_NAME} and the PPTBF nodes' GLSL entry points).").parse_args(argv)
+                                        f"({DEFS_NAME}, the PPTBF nodes' GLSL entry points and the PPTBF's "
+                                        "tables).").parse_args(argv)
     for p in write_library():
         print(f"wrote {p}")
     return 0

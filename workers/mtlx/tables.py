@@ -160,8 +160,8 @@ def glsl_tables() -> str:
 
     fam_of = {key: i + 1 for i, key in enumerate(TABLE_FAMILIES)}
     tt = pp.TILING_TYPES
-    out.append("// tiling types 0..17: family (0 PAVE, 1 CROSS N=2, 2 CROSS N=3, 3 BISQUARE, 4 APAVEMENT), subdivision\n"
-               "// probability, PAVE random cut amplitudes and row shift, relaxation iterations\n")
+    out.append("// tiling types 0..17: family (0 PAVE, 1 CROSS N=2, 2 CROSS N=3, 3 BISQUARE, 4 APAVEMENT), "
+               "subdivision\n// probability, PAVE random cut amplitudes and row shift, relaxation iterations\n")
     out.append(_array("int", "pptbf_tt_family",
                       [str(0 if t.family == "pave" else fam_of[(t.family, t.n)]) for t in tt], 18))
     out.append(_array("float", "pptbf_tt_psub", [f32(t.p_sub) for t in tt], 9))
@@ -197,8 +197,9 @@ def glsl_tables() -> str:
                       [f"vec4({f32(r[0])}, {f32(r[1])}, {f32(r[2])}, {f32(r[3])})" for r in own_all], 2))
     out.append("// owned tiles: exact-fraction index of the centre's x and y (-1: dyadic, float32 is exact)\n")
     out.append(_array("ivec2", "pptbf_own_ex", [f"ivec2({r[4]}, {r[5]})" for r in own_all], 8))
-    out.append("// exact centres: the position relative to the cell num / den, whether numpy adds 0.5 to the float64\n"
-               "// sum (PAVE thirds rows); residuals of numpy's float64 centre in ulps, per entry [neg][binade][cross]\n")
+    out.append("// exact centres: the position relative to the cell num / den, whether numpy adds 0.5 to the "
+               "float64\n// sum (PAVE thirds rows); residuals of numpy's float64 centre in ulps, per entry "
+               "[neg][binade][cross]\n")
     out.append(_array("ivec3", "pptbf_ex_rat", [f"ivec3({r[0]}, {r[1]}, {r[2]})" for r in exact.rows], 6))
     out.append(f"const int pptbf_rho_binades = {RHO_BINADES};\n")
     out.append(_array("float", "pptbf_ex_rho", [f32(v) for v in exact.rho], 8))
