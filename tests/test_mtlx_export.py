@@ -141,6 +141,21 @@ def test_blurred_blend_is_baked_and_pins_its_pptbf(noise_model, tmp_path):
         assert r["mad"] < 0.5 / 255, (k, r)
 
 
+@needs_gl
+def test_negligible_blur_stays_pointwise(noise_model, tmp_path):
+    """A blend blur too small to change a mask value by 1/255 is exported as unblurred (fitted sigmas can be
+    ~0.0005 px): nothing is baked but the noise, and the maps still match."""
+    from workers.mtlx.check import compare
+    from workers.nodes.filters import blur_is_identity
+
+    assert blur_is_identity(0.2) and not blur_is_identity(0.3)
+    mat = bricks(noise_model, sigma=0.1)              # 0.2 output pixels: the export is at twice the working size
+    doc, g = export(mat, tmp_path)
+    assert g.fixed == [] and g.pinned == []
+    res = compare(doc, g, G.evaluate(mat, SIZE, SIZE), SIZE, SIZE)
+    assert res["height"]["mad"] < 1 / 255, res["height"]
+
+
 def test_cli_export_procedural_check(noise_model, tmp_path):
     from service.cli import main
 

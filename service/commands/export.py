@@ -85,7 +85,7 @@ def handle(args) -> int:
     if built:
         g = built["graph"]
         info["procedural"] = {"material": f"M_{name}_procedural", "noise_tiles": g.baked, "baked_nodes": g.fixed,
-                              "pinned_pptbf": g.pinned}
+                              "pinned": g.pinned}
         if args.check:
             from workers.mtlx.check import TOLERANCE, compare
 
