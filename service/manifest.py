@@ -67,7 +67,7 @@ MATERIAL_KEYS = {"name", "folder", "output", *MAP_KEYS, "roughness_channel", "me
                  "albedo_colorspace", "normal_convention", "working_size", "decompose", "outputs", "seed",
                  *OPTION_STAGES, "stages"}
 DEFAULT_KEYS = MATERIAL_KEYS - {"name", "output", *MAP_KEYS}
-OUTPUT_KEYS = {"sizes", "seeds", "scales", "preview", "bits", "materialx"}
+OUTPUT_KEYS = {"sizes", "seeds", "scales", "preview", "bits", "materialx", "procedural"}
 DEBUG_KEYS = {"crash_once", "sleep"}
 
 
@@ -89,6 +89,7 @@ class OutputSpec:
     preview: bool = True
     bits: int = 8
     materialx: bool = True   # a material.mtlx (standard_surface + UsdPreviewSurface) beside each map set
+    procedural: bool = False  # material.mtlx also holds M_<name>_procedural (workers.mtlx: our node library)
 
 
 @dataclass
@@ -128,7 +129,8 @@ class MaterialSpec:
             "decompose": _jsonable(self.decompose),
             "outputs": {"sizes": [list(s) for s in self.outputs.sizes], "seeds": list(self.outputs.seeds),
                         "scales": list(self.outputs.scales), "preview": self.outputs.preview,
-                        "bits": self.outputs.bits, "materialx": self.outputs.materialx},
+                        "bits": self.outputs.bits, "materialx": self.outputs.materialx,
+                        "procedural": self.outputs.procedural},
             "seed": self.seed, **{s: _jsonable(self.stage_options(s)) for s in OPTION_STAGES},
             "stages": self.stages,
         }
@@ -355,7 +357,7 @@ def _outputs(v: Any, where: str, probs: _Problems) -> OutputSpec:
             probs.add(f"{where}.scales", f"must be a non-empty list of numbers > 0, got {sc!r}")
         else:
             out.scales = [float(s) for s in sc]
-    for flag in ("preview", "materialx"):
+    for flag in ("preview", "materialx", "procedural"):
         if flag in v:
             if not isinstance(v[flag], bool):
                 probs.add(f"{where}.{flag}", "must be true or false")

@@ -344,9 +344,11 @@ def stage_recompose(call: StageCall, holder: Any = None) -> dict:
 
 
 def _write_materialx(maps: dict[str, np.ndarray], folder: MaterialFolder, tag: str, name: str,
-                     bits: int) -> list[Path]:
+                     bits: int, proc=None, render: tuple[int, int, int, float] | None = None) -> list[Path]:
     """A MaterialX document over the written maps (albedo.png is sRGB, normal.png OpenGL-encoded), plus a
-    glTF ORM texture when the material has a metallic map."""
+    glTF ORM texture when the material has a metallic map; with ``proc`` (the material's graph) and ``render``
+    (w, h, seed, scale) also the procedural material (``workers.mtlx.procedural``: node library and noise tiles
+    beside the document)."""
     from workers.maps import write_image
 
     files = []
@@ -354,8 +356,18 @@ def _write_materialx(maps: dict[str, np.ndarray], folder: MaterialFolder, tag: s
     if "metallic" in maps:
         orm = write_image(folder.orm(tag), pack_orm(maps["roughness"], maps["metallic"]), bits=bits)
         files.append(orm)
+    procedural = None
+    if proc is not None and render is not None:
+        from workers.mtlx.procedural import add_material
+
+        w, h, seed, scale = render
+        out_dir = folder.materialx(tag).parent
+
+        def procedural(doc):
+            g = add_material(doc, proc, safe_name(name), w, h, out_dir, seed=seed, scale=scale)
+            files.extend(g.tiles.values())
     files.append(write_materialx(folder.materialx(tag), safe_name(name), "albedo.png", "normal.png",
-                                 "roughness.png", orm.name if orm else None))
+                                 "roughness.png", orm.name if orm else None, procedural=procedural))
     return files
 
 
@@ -395,7 +407,8 @@ def stage_output(call: StageCall, holder: Any = None) -> dict:
 
         files.append(write_image(folder.preview(tag), preview_image(maps), bits=8))
     if outs.materialx:
-        files += _write_materialx(maps, folder, tag, spec.name, int(outs.bits))
+        files += _write_materialx(maps, folder, tag, spec.name, int(outs.bits),
+                                  proc if outs.procedural else None, (w, h, seed, scale))
     return {"files": files, "info": {"render": tag, "seconds": round(time.perf_counter() - t0, 3)}}
 
 

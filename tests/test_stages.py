@@ -121,3 +121,30 @@ def test_load_and_decompose_write_the_folder_layout(tmp_path):
     assert {rel(folder.working_maps), rel(folder.working_meta)} <= arts["load"]
     assert arts["decompose"] == {rel(folder.tree_masks), rel(folder.tree), rel(folder.mask_png("root"))}
     assert res["info"]["leaves"] == ["root"] and res["info"]["fit_masks"] == []
+
+
+def test_output_stage_writes_the_procedural_materialx(tmp_path):
+    """outputs.procedural: each render's material.mtlx also holds M_<name>_procedural over our node library."""
+    from pptbf_db import pptbf as pp
+    from workers import graph as G
+
+    params = [float(x) for x in pp.sample_params(np.random.default_rng(4), 1, ref_width=64)[0]]
+
+    man, spec = _spec(tmp_path, outputs={"sizes": [[64, 64]], "seeds": [3], "preview": False, "procedural": True})
+    mat = G.new_material(seed=1, working_size=(64, 64))
+    mat.add("mortar", "pptbf", {"params": params, "ref_width": 64})
+    mat.add("dark", "constant", {"value": [0.2, 0.1, 0.1]})
+    mat.add("light", "constant", {"value": [0.8, 0.7, 0.6]})
+    mat.add("albedo_out", "blend", {}, mask="mortar", fg="light", bg="dark")
+    mat.add("rough", "constant", {"value": 0.7})
+    mat.maps = [{"name": "albedo", "node": "albedo_out"}, {"name": "roughness", "node": "rough"},
+                {"name": "height", "node": "mortar"}, {"name": "normal", "from_height": "height"}]
+    folder = MaterialFolder(man.material_dir(spec))
+    G.save(mat, folder.recomposed)
+    res = run_stage(StageCall(job=man.name, root=str(man.output), spec=spec, stage="output"))
+    doc_path = folder.materialx("64x64_seed3")
+    text = doc_path.read_text()
+    assert "M_m_procedural" in text and "M_m\"" in text and "ND_pptbf_float" not in text   # nodes, not defs
+    assert (doc_path.parent / "proceduralize_library" / "proceduralize_defs.mtlx").is_file()
+    assert str(doc_path.relative_to(man.output)) in {a["path"] for a in res["artefacts"]}
+    assert 'seed" type="integer" value="0"' in text      # the document's seed 0 = this render's realisation (3)
