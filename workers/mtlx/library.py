@@ -1,6 +1,7 @@
 """The proceduralize MaterialX node library: nodedefs of our procedural nodes and their GLSL implementations.
 
-Shipped with the package in ``workers/mtlx/library/`` (``proceduralize_defs.mtlx``, ``genglsl/``). The nodedefs
+Shipped with the package in ``workers/mtlx/library/`` (``proceduralize_defs.mtlx``, ``genglsl/``, ``genosl/``: the
+OSL ports, :mod:`workers.mtlx.osl`). The nodedefs
 with many inputs (the PPTBF's 29 parameters) and their GLSL entry points are written from the parameter tables
 here (``python -m workers.mtlx.library`` rewrites them; a test checks that the shipped files are current); the
 algorithms are hand-written GLSL in ``genglsl/lib/``.
@@ -97,6 +98,11 @@ class NodeDef:
     def file(self) -> str:
         return f"genglsl/{self.function}.glsl"
 
+    @property
+    def osl_file(self) -> str:
+        """The OSL implementation (``genosl/``: :mod:`workers.mtlx.osl`)."""
+        return f"genosl/{self.function}.osl"
+
 
 NODEDEFS = (
     NodeDef("pptbf", "float", PPTBF_PLACE + PPTBF_CUT + PPTBF_PARAMS,
@@ -139,6 +145,8 @@ def defs_text() -> str:
     for nd in NODEDEFS:
         lines.append(f'  <implementation name="IM_{nd.node}_{nd.type}_genglsl" nodedef="{nd.name}" '
                      f'file="{nd.file}" function="{nd.function}" target="genglsl"/>')
+        lines.append(f'  <implementation name="IM_{nd.node}_{nd.type}_genosl" nodedef="{nd.name}" '
+                     f'file="{nd.osl_file}" function="{nd.function}" target="genosl"/>')
     lines += ["</materialx>", ""]
     return "\n".join(lines)
 
@@ -215,8 +223,11 @@ GENERATED = {DEFS_FILE: defs_text, LIBRARY / NODEDEFS[0].file: pptbf_glsl_text,
 
 
 def write_library() -> list[Path]:
-    """Rewrite the generated library files; returns those that changed."""
-    changed = []
+    """Rewrite the generated library files (the OSL ones too: :func:`workers.mtlx.osl.write_osl_library`); returns
+    those that changed."""
+    from .osl import write_osl_library
+
+    changed = write_osl_library()
     for path, make in GENERATED.items():
         text = make()
         if not path.exists() or path.read_text(encoding="utf-8") != text:
@@ -229,8 +240,8 @@ def write_library() -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     """Command line: rewrite the generated files of the node library."""
     argparse.ArgumentParser(description="Rewrite the generated files of the proceduralize MaterialX node library "
-                                        f"({DEFS_NAME}, the PPTBF nodes' GLSL entry points and the PPTBF's "
-                                        "tables).").parse_args(argv)
+                                        f"({DEFS_NAME}, the PPTBF nodes' GLSL and OSL entry points and the "
+                                        "PPTBF's tables).").parse_args(argv)
     for p in write_library():
         print(f"wrote {p}")
     return 0

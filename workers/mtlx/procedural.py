@@ -340,7 +340,7 @@ LIBRARY_DIRNAME = "proceduralize_library"
 
 
 def copy_library(folder: Path) -> Path:
-    """Copy the node library (nodedefs and GLSL) to ``folder / LIBRARY_DIRNAME``; returns that folder."""
+    """Copy the node library (nodedefs, GLSL and OSL) to ``folder / LIBRARY_DIRNAME``; returns that folder."""
     import shutil
 
     from .library import LIBRARY
