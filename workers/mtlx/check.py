@@ -105,24 +105,71 @@ def render_output(doc, output, tiles: dict[str, Path], width: int, height: int,
 TOLERANCE = 2.0 / 255.0
 
 
+def _channels(ng, output, hint: str) -> list:
+    """Float nodes of each channel of a node graph output (its connected node), for packing."""
+    node = output.getConnectedNode()
+    n = {"float": 1, "vector2": 2, "color3": 3, "vector3": 3}.get(output.getType(), 4)
+    if n == 1:
+        return [node]
+    chans = []
+    for c in range(n):
+        ex = ng.addNode("extract", ng.createValidChildName(f"{hint}_c{c}"), "float")
+        ex.addInput("in", output.getType()).setConnectedNode(node)
+        ex.addInput("index", "integer").setValue(c)
+        chans.append(ex)
+    return chans
+
+
+def packed_outputs(doc, graph, names: list[str]) -> list[tuple[object, list[tuple[str, int]]]]:
+    """Vector4 outputs added to ``doc``'s copy of the procedural node graph, each packing 4 channels of the maps
+    ``names``: [(output, [(map, channel), ...])]. One shader then computes several maps, and a PPTBF that several
+    maps read is compiled once per pack, not once per map (compiling is what takes time on llvmpipe)."""
+    ng = doc.getDescendant(graph.nodegraph.getNamePath())
+    chans = []
+    for name in names:
+        out = doc.getDescendant(graph.outputs[name].getNamePath())
+        chans += [(name, c, node) for c, node in enumerate(_channels(ng, out, f"pz_check_{name}"))]
+    packs = []
+    for k in range(0, len(chans), 4):
+        part = chans[k:k + 4]
+        comb = ng.addNode("combine4", ng.createValidChildName(f"pz_check_pack{k // 4}"), "vector4")
+        for i in range(4):
+            inp = comb.addInput(f"in{i + 1}", "float")
+            if i < len(part):
+                inp.setConnectedNode(part[i][2])
+            else:
+                inp.setValue(0.0)
+        out = ng.addOutput(ng.createValidChildName(f"pz_check_out{k // 4}"), "vector4")
+        out.setConnectedNode(comb)
+        packs.append((out, [(name, c) for name, c, _ in part]))
+    return packs
+
+
 def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) -> dict[str, dict]:
     """Render every map output of a :class:`~workers.mtlx.procedural.ProceduralGraph` and compare it with
     ``maps`` (proceduralize's render at the same size, seed and scale): mean and max absolute difference, share
-    of pixels within 2/255, render seconds. Normals (``graph.sobel``) leave out the image's outer pixels: numpy's
+    of pixels within 2/255, render seconds (of the pack the map was rendered in: maps are rendered 4 channels at a
+    time, :func:`packed_outputs`). Normals (``graph.sobel``) leave out the image's outer pixels: numpy's
     Sobel wraps around the image, the shader reads the pattern on beyond it (a procedural material has no edge)."""
-    out = {}
     full = with_libraries(doc)
-    for name, output in graph.outputs.items():
-        if name not in maps:
-            continue
-        got, seconds = render_output(full, full.getDescendant(output.getNamePath()), graph.tiles, width, height)
-        ref = np.asarray(maps[name], dtype=np.float32).reshape(got.shape)
-        d = np.abs(got - ref)
+    names = [name for name in graph.outputs if name in maps]
+    got: dict[str, list] = {name: [] for name in names}
+    seconds: dict[str, float] = {name: 0.0 for name in names}
+    for out, layout in packed_outputs(full, graph, names):
+        rgba, sec = render_output(full, out, graph.tiles, width, height)
+        for i, (name, _c) in enumerate(layout):
+            got[name].append(rgba[..., i])
+            seconds[name] += sec
+    res = {}
+    for name in names:
+        img = np.stack(got[name], axis=-1)
+        ref = np.asarray(maps[name], dtype=np.float32).reshape(img.shape)
+        d = np.abs(img - ref)
         if name in graph.sobel and min(d.shape[:2]) > 2:
             d = d[1:-1, 1:-1]
-        out[name] = {"mad": float(d.mean()), "max": float(d.max()),
-                     "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()), "seconds": round(seconds, 3)}
-    return out
+        res[name] = {"mad": float(d.mean()), "max": float(d.max()),
+                     "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()), "seconds": round(seconds[name], 3)}
+    return res
 
 
 # ---------------------------------------------------------------------------------------------- the PPTBF core
