@@ -30,15 +30,7 @@ def bond_params(**edit) -> list[float]:
     return [float(x) for x in v]
 
 
-def gl_available() -> bool:
-    try:
-        glsl.context()
-        return True
-    except glsl.GlslUnavailable:
-        return False
-
-
-needs_gl = pytest.mark.skipif(not gl_available(), reason="no headless OpenGL 4 context here (moderngl with EGL: "
+needs_gl = pytest.mark.skipif(not glsl.available(), reason="no headless OpenGL 4 context here (moderngl with EGL: "
                                                          "Debian libegl1 libegl-mesa0 libgl1-mesa-dri)")
 
 
@@ -162,7 +154,7 @@ def test_cli_export_procedural_check(noise_model, tmp_path):
     path = G.save(bricks(noise_model), tmp_path / "m" / "material.json")
     out = tmp_path / "out"
     args = ["export", str(path), "--size", f"{SIZE}x{SIZE}", "--out", str(out), "--procedural"]
-    rc = main(args + (["--check"] if gl_available() else []))
+    rc = main(args + (["--check"] if glsl.available() else []))
     assert rc == 0
     info = json.loads((out / "export.json").read_text())
     proc = info["procedural"]
@@ -171,7 +163,7 @@ def test_cli_export_procedural_check(noise_model, tmp_path):
     assert 'href="proceduralize_library/proceduralize_defs.mtlx"' in text and "M_m_procedural" in text
     assert (out / "proceduralize_library" / "genglsl" / "mx_pptbf_float.glsl").is_file()
     assert len(list((out / "m_tiles").glob("*.exr"))) == 2
-    if gl_available():
+    if glsl.available():
         assert all(r["mad"] < 2 / 255 for r in proc["check"].values())
 
 

@@ -15,16 +15,8 @@ SHIFT = (0.37, 0.21)
 AGREEMENT = 0.99
 
 
-def _gl() -> bool:
-    try:
-        glsl.context()
-        return True
-    except glsl.GlslUnavailable:
-        return False
-
-
-pytestmark = pytest.mark.skipif(not _gl(), reason="no headless OpenGL 4 context here (moderngl with EGL: Debian "
-                                                  "libegl1 libegl-mesa0 libgl1-mesa-dri)")
+pytestmark = pytest.mark.skipif(not glsl.available(), reason="no headless OpenGL 4 context here (moderngl with EGL: "
+                                                              "Debian libegl1 libegl-mesa0 libgl1-mesa-dri)")
 
 
 def _base(seed: int) -> np.ndarray:

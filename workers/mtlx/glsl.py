@@ -45,6 +45,15 @@ def context():
     return ctx
 
 
+def available() -> bool:
+    """Whether an OpenGL 4 context can be made here (what the GLSL checks need)."""
+    try:
+        context()
+        return True
+    except GlslUnavailable:
+        return False
+
+
 def renderer() -> str:
     """The OpenGL renderer's name (e.g. 'llvmpipe (LLVM 15.0.6, 256 bits)')."""
     return str(context().info.get("GL_RENDERER"))

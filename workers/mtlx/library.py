@@ -227,8 +227,13 @@ def write_library() -> list[Path]:
     those that changed."""
     from .osl import write_osl_library
 
-    changed = write_osl_library()
-    for path, make in GENERATED.items():
+    return write_osl_library() + write_generated(GENERATED)
+
+
+def write_generated(files: dict) -> list[Path]:
+    """Write each path of ``files`` (path -> function giving its text) whose text changed; returns those."""
+    changed = []
+    for path, make in files.items():
         text = make()
         if not path.exists() or path.read_text(encoding="utf-8") != text:
             path.parent.mkdir(parents=True, exist_ok=True)

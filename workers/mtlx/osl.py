@@ -135,14 +135,9 @@ GENERATED = {LIBRARY / osl_file(NODEDEFS[0]): pptbf_osl_text, LIBRARY / osl_file
 
 def write_osl_library() -> list[Path]:
     """Rewrite the generated OSL files; returns those that changed."""
-    changed = []
-    for path, make in GENERATED.items():
-        text = make()
-        if not path.exists() or path.read_text(encoding="utf-8") != text:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(text, encoding="utf-8")
-            changed.append(path)
-    return changed
+    from .library import write_generated
+
+    return write_generated(GENERATED)
 
 
 # ------------------------------------------------------------------------------------------------------ compiling
