@@ -137,6 +137,33 @@ def _f(x) -> str:
     return f"{x:.2f}" if isinstance(x, float) else "-"
 
 
+def mask_rows(paths: list[Path], size: int) -> list[tuple]:
+    """(material, seed, node, output, share of equal pixels, GLSL s) per PPTBF node of each material: the node
+    alone as the document's only map, rendered against its numpy output."""
+    import dataclasses
+
+    import MaterialX as mx
+
+    from workers import graph as G
+    from workers.mtlx.procedural import add_material
+
+    rows = []
+    for path in paths:
+        mat = G.load(path)
+        ids = [i for i, n in mat.nodes.items() if n["type"] == "pptbf"]
+        one = dataclasses.replace(mat, maps=[{"name": f"m_{i}", "node": i, "clamp": False} for i in ids])
+        for seed in (0, 2):
+            with tempfile.TemporaryDirectory() as tmp:
+                doc = mx.createDocument()
+                g = add_material(doc, one, "masks", size, size, Path(tmp), seed=seed)
+                res = check.compare(doc, g, G.evaluate(one, size, size, seed=seed), size, size)
+            for i in ids:
+                r = res[f"m_{i}"]
+                kind = mat.node(i)["params"].get("output", "mask")
+                rows.append((path.parent.name, seed, i, kind, r["equal"], r["seconds"]))
+    return rows
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=1024, help="image side in pixels")
@@ -148,6 +175,10 @@ def main(argv=None) -> None:
     for name, gl, osl, first, warm, t_np, note in node_rows(args.size):
         print(f"{name:<16} {gl!s:>10} {osl!s:>9} {_f(first):>10} {_f(warm):>9} {_f(t_np):>7}  {note}")
     if args.materials:
+        print(f"\n{'material':<24} {'seed':>4} {'PPTBF node':<16} {'output':<6} {'equal':>7} {'GLSL s':>7}  "
+              f"(each PPTBF node alone, {args.size}^2)")
+        for name, seed, node, kind, equal, t_gl in mask_rows(args.materials, args.size):
+            print(f"{name:<24} {seed:>4} {node:<16} {kind:<6} {equal:>7.4f} {t_gl:>7.1f}")
         print(f"\n{'material':<24} {'seed':>4} {'map':<10} {'MAD*255':>8} {'<=2/255':>8} {'GLSL s':>7} "
               f"{'numpy s':>8}  (all maps, {args.size}^2)")
         for name, seed, k, mad, within, t_gl, t_np in material_rows(args.materials, args.size):

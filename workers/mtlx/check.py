@@ -103,6 +103,8 @@ def render_output(doc, output, tiles: dict[str, Path], width: int, height: int,
 
 #: the agreement the procedural document must reach with proceduralize's render (mean absolute difference)
 TOLERANCE = 2.0 / 255.0
+#: below this two values are the same (masks are 0 or 1, cell keys multiples of 2^-24: exact in float32)
+EQUAL = 0.5 / 2 ** 24
 
 
 def _channels(ng, output, hint: str) -> list:
@@ -148,9 +150,10 @@ def packed_outputs(doc, graph, names: list[str]) -> list[tuple[object, list[tupl
 def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) -> dict[str, dict]:
     """Render every map output of a :class:`~workers.mtlx.procedural.ProceduralGraph` and compare it with
     ``maps`` (proceduralize's render at the same size, seed and scale): mean and max absolute difference, share
-    of pixels within 2/255, render seconds (of the pack the map was rendered in: maps are rendered 4 channels at a
-    time, :func:`packed_outputs`). Normals (``graph.sobel``) leave out the image's outer pixels: numpy's
-    Sobel wraps around the image, the shader reads the pattern on beyond it (a procedural material has no edge)."""
+    of pixels within 2/255 and of equal pixels (for masks and cell keys), render seconds (of the packs the map
+    was rendered in: maps are rendered 4 channels at a time, :func:`packed_outputs`). Normals (``graph.sobel``)
+    leave out the image's outer pixels: numpy's Sobel wraps around the image, the shader reads the pattern on
+    beyond it (a procedural material has no edge)."""
     full = with_libraries(doc)
     names = [name for name in graph.outputs if name in maps]
     got: dict[str, list] = {name: [] for name in names}
@@ -159,6 +162,7 @@ def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) ->
         rgba, sec = render_output(full, out, graph.tiles, width, height)
         for i, (name, _c) in enumerate(layout):
             got[name].append(rgba[..., i])
+        for name in {name for name, _c in layout}:
             seconds[name] += sec
     res = {}
     for name in names:
@@ -168,7 +172,8 @@ def compare(doc, graph, maps: dict[str, np.ndarray], width: int, height: int) ->
         if name in graph.sobel and min(d.shape[:2]) > 2:
             d = d[1:-1, 1:-1]
         res[name] = {"mad": float(d.mean()), "max": float(d.max()),
-                     "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()), "seconds": round(seconds[name], 3)}
+                     "within_2_255": float((d.max(axis=-1) <= TOLERANCE).mean()),
+                     "equal": float((d.max(axis=-1) < EQUAL).mean()), "seconds": round(seconds[name], 3)}
     return res
 
 

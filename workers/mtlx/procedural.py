@@ -143,7 +143,7 @@ class Builder:
         elif isinstance(v, bool):
             nd.addInput(name, "boolean").setValue(v)
         elif isinstance(v, (int, float, np.floating, np.integer)):
-            nd.addInput(name, "float").setValue(float(v))
+            nd.addInput(name, "float").setValueString(_value_string(v))   # 9 digits: float32 exact
         else:
             raise GraphError(f"MaterialX export: cannot set input {name} to {v!r}")
 
