@@ -82,7 +82,8 @@ class PPTBFNode(NodeType):
     def materialx(self, b, node, node_id, offset):
         """Our ``pptbf`` MaterialX node with the cut of the exported realisation (the quantile ``binarize`` takes
         over the whole image), so that the shader's mask equals the numpy mask at the exported size and seed; or,
-        for ``output: cells``, our ``pptbf_cells`` node."""
+        for ``output: cells``, our ``pptbf_cells`` node. Read at one of the 8 neighbouring pixels (``RING``), it is
+        an output of the node's single ``pptbf_ring`` (one PPTBF in the shader for all 8 reads)."""
         from ..mtlx.library import RING, RING_OUTPUTS
 
         p = node["params"]
