@@ -204,8 +204,6 @@ struct pptbf_Prm {
     float F;        // window footprint
     bool cellular;
     int nine;       // 9, from a uniform: the tile loops stay loops (not unrolled into 9 copies)
-    int four;       // 4, likewise for the slot loops that hold large bodies (compile time: every copy of a loop
-                    // body is compiled again at every call site, and the shader inlines all calls)
 };
 
 pptbf_Prm pptbf_decode(float prm[29], float ref_width)
@@ -253,7 +251,6 @@ pptbf_Prm pptbf_decode(float prm[29], float ref_width)
     P.F = ((P.shape == 0) ? 1.5 : 1.0) * ((P.tiling >= 10) ? 0.4 : 1.0);
     P.cellular = P.beta != 0.0 && P.mixture != 3 && P.mixture != 4;
     P.nine = 9 + min(P.tiling, 0);
-    P.four = 4 + min(P.tiling, 0);
     return P;
 }
 
@@ -431,7 +428,7 @@ void pptbf_relax(pptbf_Tile t, pptbf_Split sp, pptbf_Prm P, out vec2 rp[4], out 
     }
     for (int it = 0; it < P.relax; ++it) {
         vec2 moved[4];
-        for (int m = 0; m < P.four; ++m) {
+        for (int m = 0; m < 4; ++m) {
             vec2 mp = mv[m];
             bool move = m < sp.n && mp.x >= blo.x && mp.x <= bhi.x && mp.y >= blo.y && mp.y <= bhi.y;
             // the 3 nearest other valid points (ties: the lower column)
@@ -682,7 +679,7 @@ pptbf_Nbrs pptbf_border_gather(pptbf_Prm P, ivec4 id0, vec2 p0r)
         }
         for (int once = 0; once < ((P.relax > 0) ? 1 : 0); ++once)
             pptbf_relax(t, sp, P, rp, rok);
-        for (int s = 0; s < P.four; ++s) {
+        for (int s = 0; s < 4; ++s) {
             vec2 cc, ch, off;
             pptbf_slot(t, sp, s, cc, ch, off);
             off = (P.relax > 0) ? rp[s] - cc : off;
@@ -1053,7 +1050,7 @@ float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float k
             for (int s = 0; s < 4; ++s)
                 rstar[32 + s] = rok[s] ? rp[s] : vec2(pptbf_BIG);
         }
-        for (int s = 0; s < P.four; ++s) {
+        for (int s = 0; s < 4; ++s) {
             pptbf_Pt p = pptbf_point(t, sp, s, rp[s], relaxed, O, P.jitter);
             vec4 inv = (P.larp != 0.0) ? pptbf_side_inverses(p.g, p.ch) : vec4(0.0);
             float D = rok[s] ? pptbf_rank_distance(q - p.pos, inv, P.wnorm, P.larp) : pptbf_BIG;
@@ -1111,7 +1108,7 @@ float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float k
             for (int c = 0; c < 32; ++c)
                 rstar[c] = rstar[c + 4];
         }
-        for (int s = 0; s < P.four; ++s) {
+        for (int s = 0; s < 4; ++s) {
             float idx = float(4 * k + s);
             vec2 rs = rs4[s];
             bool valid = relaxed ? rs.x < pptbf_BIG : s < sp.n;
