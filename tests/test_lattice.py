@@ -140,9 +140,10 @@ def test_degenerate_basis_has_no_points():
 
 def test_rows_are_compared_across_the_rows():
     """Slate-roof rows (random bricks, 10 px rows at 256 px, the hand-built fit of the roof's slate edges): the
-    render's own analysis reports its repeat along the rows (12.9 px at 90 degrees), so comparing lattices says
-    the rows are lost; ``compare_rows`` finds them (within 5 % and 3 degrees) on fresh realisations, rejects
-    rows 20 % taller, and finds none in blobs."""
+    render's unbroken row lines keep matching themselves along the rows; its own analysis reads the repeat
+    across them (it read 12.9 px at 90 degrees, along the rows, before ``_across_lines``), and ``compare_rows``
+    finds them too (within 5 % and 3 degrees) on fresh realisations, rejects rows 20 % taller, and finds none
+    in blobs."""
     m = imread_mask("roof_slate_edges")
     target = L.analyse_lattice(m)
     assert target.kind == "rows" and abs(target.period - 9.8) < 0.5
@@ -152,7 +153,7 @@ def test_rows_are_compared_across_the_rows():
         own = L.compare_lattices(target, L.analyse_lattice(render))
         per, ang = L.compare_rows(target, render)
         print(f"own analysis {own}, across the rows {per:.3f} {ang:.1f}")
-        assert own[1] > 45.0 and per <= 0.05 and ang <= 3.0
+        assert own[0] <= 0.05 and own[1] <= 3.0 and per <= 0.05 and ang <= 3.0
     taller = p.copy()
     taller[pp.PARAM_INDEX["resolution"]] = 12.25
     assert L.compare_rows(target, ~pp.render_mask(taller, 256, 256, shift=(11.1, 5.5)))[0] > 0.15

@@ -318,7 +318,7 @@ def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode
             else:
                 logger.info("structure: the colour split shows the layout more (%s vs %s); kept", colour[1],
                             layout_rank(split.lattice))
-                root.meta["structure_rejected"] = {**split.describe(), "colour_rank": list(colour[0])}
+                root.meta["structure_rejected"] = {**split.describe(), "colour_rank": colour[0]}
             return root
     _split(root, spec, fm, seed)
     return root
@@ -336,15 +336,15 @@ def _root(albedo: np.ndarray, fm: FeatureMaps) -> MaskNode:
 COLOUR_MARGIN = 1.15
 
 
-def _colour_shows_more(colour: tuple[bool, float], structure: tuple[bool, float]) -> bool:
-    return colour[0] > structure[0] or (colour[0] == structure[0] and colour[1] > COLOUR_MARGIN * structure[1])
+def _colour_shows_more(colour: float, structure: float) -> bool:
+    return colour > COLOUR_MARGIN * structure
 
 
-def _colour_layout(root: MaskNode) -> tuple[tuple[bool, float], str]:
+def _colour_layout(root: MaskNode) -> tuple[float, str]:
     """The strongest layout among the root's colour-split layers: (rank, layer id). A relief cut too fine for the
     working size (1-2 px mortar) loses its lattice to speckle while the colours still show the bricks; the first
     split is the one that shows the layout most."""
-    best: tuple[tuple[bool, float], str] = ((False, -1.0), "")
+    best: tuple[float, str] = (-1.0, "")
     for child in root.children:
         rank = layout_rank(analyse_lattice(np.asarray(child.mask) > 0.5))
         if rank > best[0]:
