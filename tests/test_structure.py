@@ -211,3 +211,27 @@ def test_real_first_split_at_the_job_working_size(name, first, materials_dir):
     lat = L.analyse_lattice(root.children[0].mask)
     print(f"{name}: first split {first}, {lat.kind} period {lat.period} px (reference {ref_period:.2f} px)")
     assert lat.kind == "2d" and abs(lat.period - ref_period) <= 0.10 * ref_period
+
+
+def test_real_slate_rows_are_the_first_split_at_the_job_working_size(materials_dir):
+    """roof_slates_02 at the README job's 256 px: the normals' tilt mixes the slates' wood grain with their edges
+    (a 2-D lattice at regularity 0.045, barely significant); the lower edges of the overlapping slates are steps
+    facing one way, and one sign of the normal's slope across them is unbroken rows (regularity about 0.5). The
+    first split is those rows: read across the lines (orientation within 3 degrees of the rows), spaced within
+    5 % of the reference mask's rows, halved."""
+    from workers.maps import load_material, read_image
+
+    f = real_material_files("roof_slates_02")
+    m = load_material(f["albedo"], f["normal"], f["roughness"], roughness_channel=f["roughness_channel"],
+                      working_size=256, normal_convention="auto")
+    root = decompose(m, {"layers": 2}, seed=2)
+    split = root.meta["structure"]
+    ref = read_image(Path(__file__).parent / "data" / "structure_masks" / "roof_slate_edges.png")[..., 0] > 0.5
+    ref_lat = L.analyse_lattice(ref)
+    lat = L.analyse_lattice(root.children[0].mask)
+    print(f"roof: first split {split['source']} at {split['share']}: {lat.kind}, spacing {lat.row_spacing}, "
+          f"orientation {lat.orientation_deg}, regularity {lat.regularity:.3f} (reference {ref_lat.period / 2:.2f})")
+    assert split["source"].startswith("relief:slope") and lat.kind == "rows" and lat.regularity >= 0.3
+    assert abs(lat.row_spacing - ref_lat.period / 2) <= 0.05 * ref_lat.period / 2
+    assert min(abs(lat.orientation_deg - ref_lat.orientation_deg), 180 - abs(lat.orientation_deg -
+                                                                              ref_lat.orientation_deg)) <= 3.0
