@@ -10,10 +10,10 @@ when the relief shows no layout, the albedo's high-passed luminance (dark lines)
 shares of the pixels and the lattice analysis (workers.lattice) scores every cut; the cut with a significant 2-D
 lattice whose autocorrelation repeats most (regularity) is the split, or rows that repeat far more clearly
 (``layout_rank``; a one-directional repeat is often a harmonic of the layout: roof_slates_02's fine grooves
-repeat at half the slates' spacing). A cut that the median filter thins to under ``min_kept`` of its share is lines thinner than
-the filter (the two 1 px flanks of a 2 px groove in the tilt): its remnant can repeat very regularly while it
-misses most of the network (a running bond of 8 px courses: IoU 0.41 with the mortar against 0.65), so it is
-not a candidate. The chosen cut's white pixels are layer 0 (the network), the rest layer 1. Sources and cuts are
+repeat at half the slates' spacing). A cut that the median filter thins to under ``min_kept`` of its share is lines
+thinner than the filter (the two 1 px flanks of a 2 px groove in the tilt): its remnant can repeat very regularly
+while it misses most of the network (a running bond of 8 px courses: IoU 0.41 with the mortar against 0.65), so it
+is not a candidate. The chosen cut's white pixels are layer 0 (the network), the rest layer 1. Sources and cuts are
 analysed at no more than ``analysis_size`` px (area-averaged), the chosen cut is made at full size. Materials
 without a layout (rust, sand, plaster) return None and keep the colour matting.
 """
