@@ -215,10 +215,14 @@ def _subpixel(ac: np.ndarray, lag: np.ndarray, win: int = 2) -> np.ndarray:
         if 0 < i < n - 1:
             l, c, r = (patch[iy, i - 1], patch[iy, i], patch[iy, i + 1]) if axis == 0 else \
                 (patch[i - 1, ix], patch[i, ix], patch[i + 1, ix])
-            den = l - 2 * c + r
-            if den < 0:
-                out[axis] += float(np.clip(0.5 * (l - r) / den, -0.5, 0.5))
+            out[axis] += _parabola_step(l, c, r)
     return out
+
+
+def _parabola_step(left: float, centre: float, right: float) -> float:
+    """Sub-sample offset (-0.5..0.5) of the maximum of the parabola through three equally spaced samples."""
+    den = left - 2 * centre + right
+    return float(np.clip(0.5 * (left - right) / den, -0.5, 0.5)) if den < 0 else 0.0
 
 
 def _refine(ac: np.ndarray, basis: np.ndarray, radius: float) -> np.ndarray:
@@ -251,17 +255,17 @@ def _across_lines(ac: np.ndarray, v: np.ndarray, radius: float, min_period: floa
     # the lines' direction: the ray near v's along which the autocorrelation stays highest
     t = np.arange(math.ceil(min_period), int(radius))
     angles = math.atan2(v[1], v[0]) + np.radians(np.arange(-6.0, 6.01, 0.25))
-    rays = [_sample(ac, t[:, None] * np.array([[math.cos(a), math.sin(a)]])).mean() for a in angles]
-    a = float(angles[int(np.argmax(rays))])
+    dirs = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    rays = _sample(ac, (t[None, :, None] * dirs[:, None, :]).reshape(-1, 2)).reshape(len(angles), len(t))
+    a = float(angles[int(np.argmax(rays.mean(axis=1)))])
     n = np.array([-math.sin(a), math.cos(a)])
     prof = _sample(ac, t[:, None] * n[None])
-    peak = [i for i in range(1, len(t) - 1) if prof[i] >= prof[i - 1] and prof[i] > prof[i + 1]]
-    if not peak or prof[:peak[0]].min() >= RIDGE_DIP * prof[peak[0]]:
+    peak = np.flatnonzero((prof[1:-1] >= prof[:-2]) & (prof[1:-1] > prof[2:])) + 1
+    if not len(peak) or prof[:peak[0]].min() >= RIDGE_DIP * prof[peak[0]]:
         return None
-    i = peak[0]
-    den = prof[i - 1] - 2 * prof[i] + prof[i + 1]
-    step = float(np.clip(0.5 * (prof[i - 1] - prof[i + 1]) / den, -0.5, 0.5)) if den < 0 else 0.0
-    return (t[i] + step) * n      # sub-pixel along the normal only: along a ridge the maximum is anywhere
+    i = int(peak[0])
+    # sub-pixel along the normal only: along a ridge the maximum is anywhere
+    return (t[i] + _parabola_step(prof[i - 1], prof[i], prof[i + 1])) * n
 
 
 def _rows_vector(ac: np.ndarray, prof: np.ndarray, cand: np.ndarray, cfg: LatticeConfig,

@@ -63,6 +63,14 @@ class StructureSplit:
                 "candidates": self.candidates}
 
 
+#: sources that show one flank of a groove: on a clean groove they repeat as regularly as the groove itself
+#: (a synthetic running bond: 0.97 against 0.96) while only half the network; they win only where they repeat
+#: ONE_SIDED_MARGIN times more clearly than every two-sided source (roof_slates_02: 2.8-3.3 times), and only
+#: where a two-sided source shows a layout too (on layout-free relief, 16 more cuts find more chance lattices)
+ONE_SIDED = "slope"
+ONE_SIDED_MARGIN = 2.0
+
+
 def _highpass(x: np.ndarray, sigma: float) -> np.ndarray:
     return x - ndimage.gaussian_filter(x, sigma, mode="wrap")
 
@@ -89,7 +97,7 @@ def structure_sources(albedo: np.ndarray | None, height: np.ndarray | None, norm
         relief["tilt"] = 1.0 - n[..., 2] / np.maximum(np.linalg.norm(n, axis=-1), 1e-6)
         for axis, name in ((0, "x"), (1, "y")):   # steps facing one way (see the module doc)
             slope = _highpass(n[..., axis], sig[-1])
-            relief[f"slope{name}+"], relief[f"slope{name}-"] = slope, -slope
+            relief[f"{ONE_SIDED}{name}+"], relief[f"{ONE_SIDED}{name}-"] = slope, -slope
     colour: dict[str, np.ndarray] = {}
     if albedo is not None:
         a = np.asarray(albedo, np.float32)
@@ -103,14 +111,6 @@ def structure_sources(albedo: np.ndarray | None, height: np.ndarray | None, norm
 #: 2-D lattice of wood grain and slate ends at regularity 0.03-0.05 against the slate rows' 0.5-0.6; the castle's
 #: and the plate's 2-D cuts stay ahead of their rows, at 2.2x and 1.1x at most)
 TWO_D_WEIGHT = 4.0
-
-
-#: sources that show one flank of a groove: on a clean groove they repeat as regularly as the groove itself
-#: (a synthetic running bond: 0.97 against 0.96) while only half the network; they win only where they repeat
-#: ONE_SIDED_MARGIN times more clearly than every two-sided source (roof_slates_02: 2.8-3.3 times), and only
-#: where a two-sided source shows a layout too (on layout-free relief, 16 more cuts find more chance lattices)
-ONE_SIDED = "slope"
-ONE_SIDED_MARGIN = 2.0
 
 
 def layout_rank(lat: Lattice) -> float:
