@@ -53,8 +53,7 @@ def main() -> None:
         mask[:, : n // 2] = True
         t, model = best_of(lambda: fit_noise(img, mask), args.repeat)
         size = len(json.dumps(model.to_params()))
-        rows.append((f"fit {n}x{n} RGB, half mask", t, f"{size} B JSON, T={model.info['window']}, "
-                                                        f"{model.info['windows']} windows"))
+        rows.append((f"fit {n}x{n} RGB, half mask", t, f"{size} B JSON, T={model.info['window']}"))
     for n in (512, 1024, 2048):
         t, _ = best_of(lambda: synthesize(model, n, n, seed=1), args.repeat)
         rows.append((f"synthesize {n}x{n} RGB", t, f"{n * n / t / 1e6:.1f} Mpx/s"))

@@ -2,8 +2,10 @@
 
 Fit: the masked image is rotated to its PCA colour space and split by a masked Gaussian pyramid
 (normalised convolution, so holes do not leak) into ``n_levels`` band-pass layers, a last low-pass layer
-and a base colour. Band-pass layers keep an amplitude spectrum averaged over T x T windows inside the
-mask (Welch with a Hann taper, RMS so the variance is unbiased); the last (lowest-frequency) layer's
+and a base colour. Band-pass layers keep a T x T amplitude spectrum estimated from the autocovariance over
+the pairs of pixels inside the mask (``correlation_spectrum``: Welch's smoothing of T x T Hann windows, but
+defined for regions no window fits in, such as rows of slates; the spec's windows wholly inside the mask gave
+those 8 px windows or white noise); the last (lowest-frequency) layer's
 full-image spectrum (holes weighted out by a smooth mask taper, then low-passed by the pyramid's own
 Gaussian) is approximated by a few Gabor kernels (Galerne et al. 2012). Per-channel quantiles of the masked input
 are kept for histogram matching. No input pixel is stored.
@@ -26,7 +28,6 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import scipy.fft as sfft
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage
 
 from .arrays import decode_array, encode_array
@@ -46,19 +47,13 @@ class NoiseConfig:
     var_threshold: float = 0.001          # a layer with less than this fraction of the masked variance is dropped
     kernel_sizes: tuple[int, ...] = (15, 29, 57, 113)  # Gaussian kernel sizes of the pyramid levels
     n_levels: int = 2                     # pyramid levels used -> n_levels + 1 noise layers + base
-    window: int = 64                      # start window size T of the local spectrum
-    step: int = 4                         # start window stride
-    min_window: int = 8                   # smallest T the shrink rule may reach
-    min_windows: int = 64                 # shrink step, then T (by 8), until this many windows fit in the mask
-    max_windows: int = 768                # windows actually averaged (seeded subsample): bounds time and memory
-    inside: float = 0.99                  # fraction of a window that must lie inside the mask
-    taper: bool = True                    # Hann-taper the windows (less spectral leakage than the reference)
-    window_ramp: float = 3.0              # px of the mask taper applied inside spectrum windows
+    window: int = 64                      # T: spectrum grid and lag window (the smoothing of T x T Hann windows)
+    pairs: float = 64.0                   # pixel pairs at which a lag's covariance gets half weight (few pairs:
+    #                                       shrunk toward 0, i.e. smoothed more where the region is small or thin)
     taper_ramp: float = 6.0               # px over which the last layer's mask weight ramps from 0 to 1
     gabor_last: bool = True               # last layer from the full-image spectrum as Gabor kernels
     n_gabor: int = 16                     # Gabor kernels per PCA component of the last layer
     n_quantiles: int = 64                 # stored quantiles per channel for histogram matching
-    seed: int = 0                         # window subsampling seed (fitting is deterministic)
     per_piece: tuple[str, ...] = ("height",)  # maps whose instance kinds get one offset per piece at render
     #                                       time, their noise fitted on the within-piece residual (workers.pieces):
     #                                       bricks set at different depths give the normals their steps at the
@@ -69,8 +64,8 @@ class NoiseConfig:
         self.per_piece = (self.per_piece,) if isinstance(self.per_piece, str) else tuple(self.per_piece)
         if not 0 <= self.n_levels <= len(self.kernel_sizes):
             raise InputError(f"NoiseConfig.n_levels={self.n_levels} must be in [0, {len(self.kernel_sizes)}]")
-        if self.window < self.min_window or self.min_window < 2 or self.step < 1:
-            raise InputError("NoiseConfig: need window >= min_window >= 2 and step >= 1")
+        if self.window < 4 or self.pairs < 0:
+            raise InputError("NoiseConfig: need window >= 4 and pairs >= 0")
         if self.n_quantiles < 2 or self.n_gabor < 1:
             raise InputError("NoiseConfig: need n_quantiles >= 2 and n_gabor >= 1")
 
@@ -235,66 +230,52 @@ def erode_mask(mask: np.ndarray, fraction: float, keep: float = 0.5) -> np.ndarr
     return dist > r if r >= 1 else mask.copy()
 
 
-def _window_grid(mask: np.ndarray, t: int, step: int, inside: float) -> tuple[np.ndarray, np.ndarray]:
-    """Top-left corners (ys, xs) of t x t windows at stride ``step`` with >= ``inside`` of their pixels in mask."""
-    h, w = mask.shape
-    if t > h or t > w:
-        return np.zeros(0, int), np.zeros(0, int)
-    sat = np.pad(mask.astype(np.int64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
-    ys = np.arange(0, h - t + 1, step)
-    xs = np.arange(0, w - t + 1, step)
-    yy, xx = np.meshgrid(ys, xs, indexing="ij")
-    cnt = sat[yy + t, xx + t] - sat[yy, xx + t] - sat[yy + t, xx] + sat[yy, xx]
-    keep = cnt >= inside * t * t
-    return yy[keep], xx[keep]
+def _lag_window(t: int) -> np.ndarray:
+    """(2T-1)^2 lag window: the autocorrelation of a T px Hann taper, 1 at lag 0. Averaging the periodograms of
+    Hann-tapered T x T windows (Welch) smooths the spectrum by exactly this product in the lag domain."""
+    hann = np.hanning(t + 2)[1:-1]
+    lw = np.correlate(hann, hann, "full")
+    lw /= lw.max()
+    return np.outer(lw, lw)
 
 
-def choose_windows(mask: np.ndarray, cfg: NoiseConfig) -> tuple[int, int, np.ndarray, np.ndarray]:
-    """Shrink rule: from (T, step), shrink the step (halving) then T (by 8) until >= min_windows windows fit."""
-    best = (cfg.min_window, 1, np.zeros(0, int), np.zeros(0, int))
-    t = min(cfg.window, *mask.shape)
-    while t >= cfg.min_window:
-        step = cfg.step
-        while True:
-            ys, xs = _window_grid(mask, t, step, cfg.inside)
-            if ys.size >= cfg.min_windows:
-                return t, step, ys, xs
-            if ys.size > best[2].size:
-                best = (t, step, ys, xs)
-            if step == 1:
-                break
-            step = max(1, step // 2)
-        t -= 8
-    return best
+def correlation_spectrum(band: np.ndarray, mask: np.ndarray, t: int, pairs: float = 64.0) -> np.ndarray:
+    """RMS amplitude spectrum (C, T, T//2+1) of ``band`` (HxWxC) inside ``mask`` (HxW bool), normalised like
+    |rfft2|/T^2 of an untapered window (sum of squares = the masked variance).
 
-
-def window_spectrum(layer: np.ndarray, ys: np.ndarray, xs: np.ndarray, t: int, taper: bool = True,
-                    weight: np.ndarray | None = None, chunk: int = 128) -> np.ndarray:
-    """RMS amplitude spectrum (C, T, T//2+1) over the given windows, normalised like |rfft2|/T^2 of an untapered
-    window (sum of squares = variance).
-
-    ``taper``: Hann window (power renormalised), which keeps the leakage of strong low frequencies out of the
-    weak high ones (untapered windows raise the tail by orders of magnitude). ``weight`` (HxW, e.g. a smooth
-    mask taper) multiplies each window too, so the few masked-out pixels a window may hold do not add hard-edged
-    broadband power; the power is normalised by the windows' actual sum of squared weights.
+    Masked-correlation (Blackman-Tukey) estimate: the autocovariance at each lag |dx|, |dy| < T is the mean
+    product over the pairs of pixels that are both in the mask (two periodic FFTs: the masked signal's
+    autocorrelation over the mask's), shrunk toward 0 by n / (n + ``pairs``) where a lag has few pairs, times
+    the lag window of a T px Hann taper (``_lag_window``), then Fourier-transformed on the T grid (lags folded
+    modulo T: the spectrum sampled at k / T); negative lobes are clipped. The mask's shape does not enter the
+    estimate (no hard mask edge multiplies the signal), so thin or fragmented regions (slates 10 px tall,
+    bricks, planks, where no T x T window fits inside and a spectrum averaged over windows falls back to
+    8 px windows or white noise) keep their grain's direction; on a full mask it is Welch's estimate.
     """
-    view = sliding_window_view(layer, (t, t), axis=(0, 1))  # (H-T+1, W-T+1, C, T, T), no copy
-    wview = None if weight is None else sliding_window_view(weight, (t, t))
-    win1 = np.hanning(t + 2)[1:-1] if taper else np.ones(t)
-    w2 = np.outer(win1, win1).astype(np.float32)
-    acc = np.zeros((layer.shape[2], t, t // 2 + 1), dtype=np.float64)
-    norm = 0.0
-    for i in range(0, ys.size, chunk):
-        win = view[ys[i:i + chunk], xs[i:i + chunk]]
-        wt = np.broadcast_to(w2, (win.shape[0], 1, t, t)) if wview is None else \
-            (w2 * wview[ys[i:i + chunk], xs[i:i + chunk]])[:, None]
-        if taper or wview is not None:
-            mu = (win * wt).sum(axis=(-2, -1), keepdims=True) / np.maximum(wt.sum(axis=(-2, -1), keepdims=True), 1e-6)
-            win = (win - mu) * wt
-        f = sfft.rfft2(win, axes=(-2, -1))
-        acc += (f.real ** 2 + f.imag ** 2).sum(axis=0)
-        norm += float((wt.astype(np.float64) ** 2).sum())
-    amp = np.sqrt(acc / max(norm, 1e-12) / (t * t))
+    h, w, c = band.shape
+    m = mask.astype(np.float64)
+    fm = sfft.rfft2(m)
+    lags = np.arange(-(t - 1), t)
+    iy, ix = lags[:, None] % h, lags[None, :] % w
+    n = sfft.irfft2(fm * np.conj(fm), s=(h, w))[iy, ix]
+    weight = np.where(n > 0.5, 1.0 / np.maximum(n + pairs, 1e-9), 0.0) * _lag_window(t)
+    fy, fx = lags[:, None] % t, lags[None, :] % t
+    out = np.zeros((c, t, t // 2 + 1), np.float64)
+    inside = m.sum()
+    for k in range(c):
+        x = band[..., k].astype(np.float64)
+        x = (x - (x * m).sum() / inside) * m
+        fxk = sfft.rfft2(x)
+        cov = sfft.irfft2(fxk * np.conj(fxk), s=(h, w))[iy, ix] * weight
+        folded = np.zeros((t, t))
+        np.add.at(folded, (np.broadcast_to(fy, cov.shape), np.broadcast_to(fx, cov.shape)), cov)
+        power = np.maximum(np.real(sfft.fft2(folded)), 0.0)
+        power[0, 0] = 0.0
+        total = power.sum()
+        var = float((x * x).sum() / inside)
+        if total > 0:
+            out[k] = (power * (var / total))[:, : t // 2 + 1]
+    amp = np.sqrt(out)
     amp[:, 0, 0] = 0.0
     return amp.astype(np.float32)
 
@@ -384,14 +365,8 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
     bands.append(last)
     base = (mean + basis @ base_pca).astype(np.float32)
 
-    t, step, ys, xs = choose_windows(em, cfg)
-    rng = np.random.default_rng(cfg.seed)
-    n_avail = ys.size
-    if ys.size > cfg.max_windows:
-        pick = np.sort(rng.choice(ys.size, cfg.max_windows, replace=False))
-        ys, xs = ys[pick], xs[pick]
+    t = min(cfg.window, *img.shape[:2])
     total_var = float(var.sum())
-    wmask = None if em.all() else mask_taper(em, cfg.window_ramp)
     layers, info_layers = [], []
     for i, band in enumerate(bands):
         bvar = band[em].var(axis=0)
@@ -401,18 +376,12 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
             info_layers.append({"kind": "window", "dropped": True, "var": bvar.tolist()})
         elif is_last and cfg.gabor_last:
             layers.append(_gabor_layer(y, em, sigmas, bvar, cfg, info_layers))
-        elif ys.size > 0:
-            layers.append(NoiseLayer("window", spectrum=window_spectrum(band, ys, xs, t, cfg.taper, wmask)))
+        else:
+            layers.append(NoiseLayer("window", spectrum=correlation_spectrum(band, em, t, cfg.pairs)))
             info_layers.append({"kind": "window", "var": bvar.tolist()})
-        else:  # no window fits: white spectrum with the right variance
-            amp = np.broadcast_to(np.sqrt(bvar)[:, None, None] / t, (c, t, t // 2 + 1)).astype(np.float32).copy()
-            amp[:, 0, 0] = 0.0
-            layers.append(NoiseLayer("window", spectrum=amp))
-            info_layers.append({"kind": "window", "white": True, "var": bvar.tolist()})
-    info = {"window": t, "step": step, "windows": int(ys.size), "windows_available": int(n_avail),
-            "mask_fraction": float(mask.mean()), "eroded_fraction": float(em.mean()),
+    info = {"window": t, "mask_fraction": float(mask.mean()), "eroded_fraction": float(em.mean()),
             "pca_var": var.tolist(), "layers": info_layers, "config": _jsonable(asdict(cfg))}
-    logger.debug("fit_noise %dx%dx%d: T=%d step=%d windows=%d", h, w, c, t, step, ys.size)
+    logger.debug("fit_noise %dx%dx%d: T=%d", h, w, c, t)
     return NoiseModel(base=base, pca_mean=mean.astype(np.float32), pca_basis=basis.astype(np.float32),
                       layers=layers, quantiles=quantiles, fit_size=(h, w), info=info)
 
