@@ -365,7 +365,7 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
     bands.append(last)
     base = (mean + basis @ base_pca).astype(np.float32)
 
-    t = min(cfg.window, *img.shape[:2])
+    t = min(cfg.window, max(4, min(h, w) // 2))   # lags up to T - 1 stay distinct on the periodic grid
     total_var = float(var.sum())
     layers, info_layers = [], []
     for i, band in enumerate(bands):
