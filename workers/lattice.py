@@ -12,7 +12,8 @@ measured first and the search starts on it:
   accuracy by least squares over the sub-pixel peaks of all lattice points within half the image.
   ``regularity`` is that height (0..1); ``significance`` is the same in units of the ring's standard deviation
   and decides whether there is a repeat at all (rust and blob fields reach ~2, real slate rows 2.6, brick walls
-  3.4, synthetic layouts 3-6; a repeat needs 2.5). Rows run along the short lattice vector along which the
+  3.4, synthetic layouts 3-6; a repeat needs 2.5, or 2.0 when its points stand a quarter of the autocorrelation
+  high: a large period leaves few points to stand out). Rows run along the short lattice vector along which the
   autocorrelation stays high between lattice points (a course's mortar lines keep matching along the course);
   when the lattice points barely rise above that ridge, the cuts along the rows are random and the mask is
   ``kind`` "rows" (one vector: the row spacing across the rows). Also reported: the row offset (0 stacked, 1/2
@@ -56,6 +57,8 @@ class LatticeConfig:
     min_peak: float = 0.05         # autocorrelation a candidate needs
     max_cell_share: float = 1.0 / 10.0   # a layout shows at least 10 cells in the mask
     min_significance: float = 2.5  # lattice points' height above the ring mean, in ring standard deviations
+    regular_significance: float = 2.0   # ... enough for a repeat whose regularity reaches regular_min
+    regular_min: float = 0.25      # (layout-free masks: rust 0.075; relief cuts of plaster, sand, rust below 0.15)
     rows_ratio: float = 0.5        # a 2-D lattice wins over a one-directional repeat at this share of its contrast
 
 
@@ -355,10 +358,10 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
     z1 = _rows_z(ac, prof, v) if v is not None else -1.0
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
     # points carry at least rows_ratio of the strongest vector's contrast (real walls drift from row to row)
-    if max(z1, z2) >= cfg.min_significance and best2 is not None and best2[0] >= cfg.rows_ratio * s1:
+    if best2 is not None and _stands(max(z1, z2), best2[0], cfg) and best2[0] >= cfg.rows_ratio * s1:
         return _describe_2d(ac, prof, best2[1], best2[0], max(z1, z2), base, radius)
     if v is not None:
-        if z1 >= cfg.min_significance:
+        if _stands(z1, s1, cfg):
             across = _across_lines(ac, v, radius, cfg.min_period)
             v = v if across is None else across
             ang = math.degrees(math.atan2(v[1], v[0])) + 90.0
@@ -367,6 +370,14 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
                            orientation_deg=float(ang % 180.0), **base)
     reg = max(best2[0] if best2 else 0.0, s1, 0.0)
     return Lattice(kind="none", vectors=[], regularity=float(reg), significance=float(max(z1, z2)), **base)
+
+
+def _stands(z: float, regularity: float, cfg: LatticeConfig) -> bool:
+    """Whether a repeat stands out: its points ``min_significance`` ring deviations above the ring mean, or
+    ``regular_significance`` when its points stand ``regular_min`` of the autocorrelation high. A large period
+    puts few points in the analysed disc, each on a ring of few pixels, so its significance is low however
+    regular it is (a 3:1 herringbone of 50 px cells at 256 px: 2.24, regularity 0.32)."""
+    return z >= cfg.min_significance or (z >= cfg.regular_significance and regularity >= cfg.regular_min)
 
 
 def _rows_z(ac: np.ndarray, prof: np.ndarray, v: np.ndarray) -> float:
