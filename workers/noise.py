@@ -259,16 +259,16 @@ def correlation_spectrum(band: np.ndarray, mask: np.ndarray, t: int, pairs: floa
     iy, ix = lags[:, None] % h, lags[None, :] % w
     n = sfft.irfft2(fm * np.conj(fm), s=(h, w))[iy, ix]
     weight = np.where(n > 0.5, 1.0 / np.maximum(n + pairs, 1e-9), 0.0) * _lag_window(t)
-    fy, fx = lags[:, None] % t, lags[None, :] % t
+    cell = tuple(np.broadcast_to(a, n.shape) for a in (lags[:, None] % t, lags[None, :] % t))  # lag -> T grid
     out = np.zeros((c, t, t // 2 + 1), np.float64)
     inside = m.sum()
     for k in range(c):
         x = band[..., k].astype(np.float64)
         x = (x - (x * m).sum() / inside) * m
-        fxk = sfft.rfft2(x)
-        cov = sfft.irfft2(fxk * np.conj(fxk), s=(h, w))[iy, ix] * weight
+        spec = sfft.rfft2(x)
+        cov = sfft.irfft2(spec * np.conj(spec), s=(h, w))[iy, ix] * weight
         folded = np.zeros((t, t))
-        np.add.at(folded, (np.broadcast_to(fy, cov.shape), np.broadcast_to(fx, cov.shape)), cov)
+        np.add.at(folded, cell, cov)
         power = np.maximum(np.real(sfft.fft2(folded)), 0.0)
         power[0, 0] = 0.0
         total = power.sum()
