@@ -25,20 +25,18 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.folder import MaterialFolder  # noqa: E402
-from service.pipeline import load_tree, load_working_material, read_npz  # noqa: E402
+from service.pipeline import load_recompose_inputs, read_npz  # noqa: E402
 from workers import graph as G  # noqa: E402
 
 MAPS = ("albedo", "normal", "roughness", "height")
 
 
 def layer_distances(ref, cand) -> np.ndarray:
-    """Per-layer relative Frobenius distance of the VGG-19 Grams of two HxWxC images (workers.evaluate)."""
-    import torch
-
+    """Per-layer VGG-19 Gram distance of two HxWxC images, as workers.evaluate scores them (mean = its value)."""
+    from pptbf_db.features import gram_layer_distances
     from workers.evaluate import vgg_grams
 
-    ga, gb = vgg_grams(cand[None]), vgg_grams(ref[None])
-    return np.array([float(torch.linalg.matrix_norm(x - y) / torch.linalg.matrix_norm(y)) for x, y in zip(ga, gb)])
+    return gram_layer_distances(vgg_grams(cand[None]), vgg_grams(ref[None]))[:, 0].numpy()
 
 
 def score(mat: G.ProceduralMaterial, inputs: dict, seeds: list[int]) -> dict[str, tuple[float, np.ndarray]]:
@@ -64,18 +62,9 @@ def recompose(folder: MaterialFolder, options: dict) -> tuple[G.ProceduralMateri
     """The folder's graph assembled and optimised again from its stage outputs with ``options``."""
     from workers.actors import Recomposer
 
-    noises, pieces, fits = {}, {}, {}
-    for f in folder.noise_models():
-        d = json.loads(f.read_text(encoding="utf-8"))
-        noises[(d["leaf"], d["map"])] = d["params"]
-        if d.get("pieces"):
-            pieces[(d["leaf"], d["map"])] = d["pieces"]
-    for f in folder.mask_fits():
-        d = json.loads(f.read_text(encoding="utf-8"))
-        fits[d["node"]] = d
-    seed = int(G.load(folder.published).seed)
-    return Recomposer().run(load_working_material(folder), load_tree(folder), noises, fits, options=options,
-                            seed=seed, pieces=pieces)
+    mat, tree, noises, fits, pieces = load_recompose_inputs(folder)
+    return Recomposer().run(mat, tree, noises, fits, options=options, seed=int(G.load(folder.published).seed),
+                            pieces=pieces)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -274,11 +274,17 @@ def _read_state_dict(path: Path) -> dict:
     return sd
 
 
+def gram_layer_distances(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
+    """Relative Frobenius distance ||Ga - Gb|| / ||Gb|| of two lists of Gram matrices (B, c, c), per layer;
+    (layers, B)."""
+    return torch.stack([torch.linalg.matrix_norm(x - y) / torch.linalg.matrix_norm(y).clamp_min(1e-12)
+                        for x, y in zip(a, b)])
+
+
 def gram_distance(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
-    """Texture distance of two lists of Gram matrices (B, c, c) per layer: the mean over layers of the relative
-    Frobenius distance ||Ga - Gb|| / ||Gb|| (each layer weighs the same whatever its magnitude); (B,)."""
-    parts = [torch.linalg.matrix_norm(x - y) / torch.linalg.matrix_norm(y).clamp_min(1e-12) for x, y in zip(a, b)]
-    return torch.stack(parts).mean(0)
+    """Texture distance of two lists of Gram matrices: the mean over layers of :func:`gram_layer_distances`
+    (each layer weighs the same whatever its magnitude); (B,)."""
+    return gram_layer_distances(a, b).mean(0)
 
 
 def gram_loss(extractor: GramExtractor, x: torch.Tensor, y_grams: list[torch.Tensor]) -> torch.Tensor:

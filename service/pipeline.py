@@ -314,23 +314,27 @@ def stage_masks(call: StageCall, holder: Any = None) -> dict:
                                       "index_load_s": round(fitter.load_seconds, 3)}}
 
 
-def stage_recompose(call: StageCall, holder: Any = None) -> dict:
-    """Assemble the procedural graph from the tree, noise models and mask fits, optimise it, write material.json."""
-    from workers import graph
-
-    folder = call.folder
-    mat = load_working_material(folder)
-    tree = load_tree(folder)
-    noises, pieces = {}, {}
+def load_recompose_inputs(folder: MaterialFolder) -> tuple[Any, MaskNode, dict, dict, dict]:
+    """What the recomposition assembles a graph from, as the earlier stages wrote it: the working-size Material,
+    the decomposition tree, noise params and per-piece fits by (leaf, map), mask fits by node."""
+    noises, pieces, fits = {}, {}, {}
     for f in folder.noise_models():
         d = json.loads(f.read_text(encoding="utf-8"))
         noises[(d["leaf"], d["map"])] = d["params"]
         if d.get("pieces"):
             pieces[(d["leaf"], d["map"])] = d["pieces"]
-    fits = {}
     for f in folder.mask_fits():
         d = json.loads(f.read_text(encoding="utf-8"))
         fits[d["node"]] = d
+    return load_working_material(folder), load_tree(folder), noises, fits, pieces
+
+
+def stage_recompose(call: StageCall, holder: Any = None) -> dict:
+    """Assemble the procedural graph from the tree, noise models and mask fits, optimise it, write material.json."""
+    from workers import graph
+
+    folder = call.folder
+    mat, tree, noises, fits, pieces = load_recompose_inputs(folder)
     recomposer = holder
     if recomposer is None:  # run outside an actor (tests, single machine)
         from workers.actors import Recomposer
