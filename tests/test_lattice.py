@@ -229,6 +229,26 @@ def test_a_herringbone_whose_rows_keep_matching_is_two_dimensional():
     assert per <= 0.05 and ang <= 3.0, (per, ang)
 
 
+def test_courses_whose_offsets_drift_are_one_course_a_cell():
+    """metal_plate_02's seams (the first layer of its automatic decomposition at 512 px, and the height threshold
+    of make.py), analysed at 256 px: plates 43 px wide in courses 62 px apart, each offset by about half a plate
+    with a drift of a few pixels, so only every second course repeats exactly. The analysis read a cell of two
+    courses, (43, 0), (0, 125); the fit then cut each plate into a pavement of odd shapes. It reads one course a
+    cell, a running bond, and the first matches are half bonds on that lattice."""
+    from skimage.io import imread
+
+    from workers.masks import downsample_mask
+
+    for name in ("metal_plate_courses", "metal_plate_seams"):
+        m = downsample_mask(imread(DATA / f"{name}.png") > 127, 256, 256)
+        lat = L.analyse_lattice(m)
+        area = abs(float(np.linalg.det(np.array(lat.vectors))))
+        assert lat.kind == "2d" and abs(area - 42.7 * 61.6) <= 0.05 * 42.7 * 61.6, (name, lat.vectors)
+        assert abs(lat.row_spacing - 61.6) <= 0.05 * 61.6 and abs(lat.row_offset - 0.5) <= 0.05, (name, lat)
+        assert abs(lat.period - 42.7) <= 0.05 * 42.7 and min(lat.orientation_deg, 180 - lat.orientation_deg) < 2.0
+        assert any(mt.tiling == 4 for mt in L.match_tilings(lat)[:4]), L.match_tilings(lat)[:4]
+
+
 def test_a_regular_layout_with_few_lattice_points_is_two_dimensional():
     """A split 3:1 herringbone of cells about 50 px long at 256 px (bench target 8): few lattice points fit in
     the analysed disc, so they stand only 2.24 ring deviations (a repeat needs 2.5) although they stand 0.32 of

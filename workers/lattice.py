@@ -9,7 +9,9 @@ measured first and the search starts on it:
   vectors; the basis is the pair (cells of at most a tenth of the mask) whose lattice points stand highest above
   the autocorrelation's ring mean at their radius (its isotropic decay), the smallest cell among those within
   10 % of the best (a sub-lattice scores as high, with a larger cell); the basis is refined to sub-pixel
-  accuracy by least squares over the sub-pixel peaks of all lattice points within half the image.
+  accuracy by least squares over the sub-pixel peaks of all lattice points within half the image. A cell of two
+  courses is halved when the courses between stand almost as high (offsets that drift from course to course
+  repeat exactly only every second course; ``_finer``).
   ``regularity`` is that height (0..1); ``significance`` is the same in units of the ring's standard deviation
   and decides whether there is a repeat at all (rust and blob fields reach ~2, real slate rows 2.6, brick walls
   3.4, synthetic layouts 3-6; a repeat needs 2.5, or 2.0 when its points stand a quarter of the autocorrelation
@@ -354,6 +356,8 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
         best2 = (_score(ac, prof, b, radius), b)
     v1, s1 = _rows_vector(ac, prof, cand, cfg, radius) if len(cand) else (None, -1.0)
     z2 = _score(ac, prof, best2[1], radius, z=True) if best2 is not None else -1.0
+    if best2 is not None:   # the repeat's strength is the exact lattice's; a halved cell only describes it
+        best2 = (best2[0], _finer(ac, prof, best2[1], radius))
     v = _refine_rows(ac, v1, radius) if v1 is not None else None
     z1 = _rows_z(ac, prof, v) if v is not None else -1.0
     # a repeat exists when the strongest vector or the best lattice stands out; it is 2-D when the lattice's
@@ -370,6 +374,47 @@ def _analyse(mask, config: LatticeConfig | None) -> Lattice:
                            orientation_deg=float(ang % 180.0), **base)
     reg = max(best2[0] if best2 else 0.0, s1, 0.0)
     return Lattice(kind="none", vectors=[], regularity=float(reg), significance=float(max(z1, z2)), **base)
+
+
+#: the points a finer lattice adds (index 2) must stand this share of the coarse lattice's points' height above
+#: their ring mean (and STANDING_Z ring deviations) for the finer lattice to replace it
+FINER_SHARE = 0.6
+#: ... at their autocorrelation peak within this share of the short lattice vector of the added point
+FINER_DRIFT = 0.2
+
+
+def _finer(ac: np.ndarray, prof: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
+    """b, or the lattice with a course between b's courses when those stand: a cell of two courses is halved.
+
+    The basis is chosen by its points' mean height, and courses offset by a drifting or uneven amount repeat
+    exactly only every second course: metal_plate_02's seams at 256 px (the first layer of its automatic
+    decomposition at 512 px, tests/data/structure_masks/metal_plate_courses.png: plates 43 px wide, courses 62 px
+    apart, each offset by about half a plate) read (43, 0), (0, 125) with points at 0.47-0.59, the courses
+    between at (+-21.8, 61.7) 0.44-0.46 high (3.0 ring deviations); with thinner seams the offsets are 0.43 and
+    0.57 of a plate, peaks at (+-24.5, 61.5), 0.32 high against 0.48 (3.0). The plates came back as
+    pavements of two-course cells cut into odd shapes. When the added coset's four points nearest the origin
+    (b_long / 2 or (b_long + b_short) / 2 and their neighbours), each taken at its autocorrelation peak within
+    FINER_DRIFT of the short vector, stand STANDING_Z ring deviations and FINER_SHARE of b's short points' mean
+    height above their ring means, the halved cell is returned, its course offset the exact half step between
+    the peaks (a running bond: the nearest layout a single cell can tile). Only a cell at least
+    POINT_TEST_ELONGATION times longer across than along (two courses): a herringbone's half vectors match its
+    rotated bricks almost as well as its lattice points (bench target 25, a 3:1 herringbone of cells 28 x 37 px:
+    0.36 at its half vector against 0.35 at its points) and its cell is not elongated."""
+    lengths = np.linalg.norm(b, axis=1)
+    if lengths.max() < POINT_TEST_ELONGATION * lengths.min():
+        return b
+    short, long_ = (b[0], b[1]) if lengths[0] <= lengths[1] else (b[1], b[0])
+    coarse = float(_heights(ac, prof, np.stack([b[0], b[1], b[0] + b[1], b[0] - b[1]])).mean())
+    win = max(2, int(round(FINER_DRIFT * float(np.linalg.norm(short)))))
+    best = None
+    for h in (0.5 * long_, 0.5 * (long_ + short)):
+        coset = h + np.array([[0, 0], [-1, 0], [0, -1], [-1, -1]], np.float64) @ np.stack([short, long_])
+        peaks = np.array([_subpixel(ac, q, win) for q in coset])
+        height = _heights(ac, prof, peaks)
+        if _heights(ac, prof, peaks, z=True).min() >= STANDING_Z and height.min() >= FINER_SHARE * coarse:
+            if best is None or float(height.mean()) > best[0]:
+                best = (float(height.mean()), h)
+    return b if best is None else _reduce(np.stack([short, best[1]]))
 
 
 def _stands(z: float, regularity: float, cfg: LatticeConfig) -> bool:

@@ -18,7 +18,8 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    fitted: a line search over larp, smoothness, sector count (2^arity), jitter and norm (``window_lines``; the
    sector count is a rounded step a local search cannot move, and the loss is sharp in larp) on a crop of the
    target at full resolution (a quarter of the cost), then the window entries by local search at full size
-   (window shape and mixture by sweep); then every entry is freed for a final polish with small steps.
+   (window shape and mixture by sweep); then the best candidate so far gets a line over larp and smoothness at
+   full size and every entry is freed for a final polish with small steps.
 4. The candidates (polished, layout-fixed, best start, best database entry) are compared on fresh realisations;
    the best there is returned.
 
@@ -652,12 +653,22 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     return _Window(b, c, b.evaluations + counted, history + b.history, search_evals if crop is not None else 0)
 
 
+#: cell-shape lines the polish runs first at full size: the candidate it starts from may come from a database
+#: entry's look or the crop's line search, whose larp a local search with small steps cannot move far
+POLISH_LINES = ("window_larp", "window_smoothness")
+
+
 def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,
             seed: int) -> Budget:
-    """Everything free, small steps, from the best candidate so far."""
+    """From the best candidate so far: the POLISH_LINES at full size, then everything free with small steps."""
     own, compl, x0 = best[0], best[1], best[2]
     b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
     b.seed(x0, own)
+    try:
+        for name in POLISH_LINES:
+            x0 = _line(b, x0, name, WINDOW_LINES[name])
+    except BudgetExhausted:
+        return b
     optimise(b.loss, x0, width, OptSettings(rounds=2, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.03,
                                             seed=seed + 1), budget=b)
     return b

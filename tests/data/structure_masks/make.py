@@ -12,6 +12,10 @@ Each mask is 512x512, white = the thin network (mortar, slate edges, panel seams
   with that mask). Its lattice shows at 512 px (21.5 px, significance 2.7) and not at 256 px (2.1).
 * metal_plate_seams.png: metal_plate_02, same high-passed height (sigma 12 px), white = the lowest 8 % (the
   recessed seams between panels; the tread pattern sits above them).
+* metal_plate_courses.png: metal_plate_02, the first layer of the pipeline's automatic decomposition at working
+  size 512 (``workers.decompose.decompose``, two layers, seed 0; the seams, widened by the matting to 6-10 px):
+  plates 86 px wide in courses 125 px apart, each course offset by about half a plate, the offset drifting by a
+  few pixels, which the lattice analysis once read as a cell of two courses.
 * rusty_metal_rust.png: rusty_metal_05, albedo luminance blurred (sigma 2 px), white = the darkest 40 %: a
   noise-like mask without a lattice (the control).
 
@@ -47,6 +51,16 @@ def _highpass_height(folder: Path, sigma: float) -> np.ndarray:
     return h - ndimage.gaussian_filter(h, sigma, mode="wrap")
 
 
+def _decomposition_layer(folder: Path) -> np.ndarray:
+    """The first layer's mask of the automatic two-layer decomposition at working size SIZE (as a job makes it)."""
+    from workers.decompose import decompose
+    from workers.maps import load_material
+
+    files = {k: next(folder.glob(f"*_{k}_1k.jpg")) for k in ("diff", "nor_gl", "rough")}
+    mat = load_material(files["diff"], files["nor_gl"], files["rough"], roughness_channel=0, working_size=SIZE)
+    return np.asarray(decompose(mat, {"layers": 2}, seed=0).children[0].mask, bool)
+
+
 def build(materials: Path) -> dict[str, np.ndarray]:
     """The masks (bool 512x512) by file name."""
     out = {}
@@ -59,6 +73,7 @@ def build(materials: Path) -> dict[str, np.ndarray]:
     tilt = 1.0 - n[..., 2] / np.maximum(np.linalg.norm(n, axis=-1), 1e-6)
     out["roof_slate_edges"] = ndimage.median_filter(tilt > np.quantile(tilt, 0.75), 3, mode="wrap")
     out["roof_slate_edges_fine"] = ndimage.median_filter(tilt > np.quantile(tilt, 0.85), 3, mode="wrap")
+    out["metal_plate_courses"] = _decomposition_layer(materials / "metal_plate_02")
     alb = _map(materials / "rusty_metal_05", "diff")[..., :3]
     lum = ndimage.gaussian_filter(alb @ np.array([0.2126, 0.7152, 0.0722]), 2.0, mode="wrap")
     out["rusty_metal_rust"] = lum < np.quantile(lum, 0.40)
