@@ -214,8 +214,8 @@ def run_real(args, index, panels: Path | None) -> list[dict]:
         fit_period = L.rows_match(out, lt)[0] if lt.kind == "rows" else (lo.period or 0.0)
         cell = cell_error(lt, fit.params)
         print(f"{name:<22} {lt.kind:>5} {lt.period or 0:>6.1f} | {fit_period:>7.1f} {100 * per:>5.1f} "
-              f"{ang:>5.1f} {100 * cell:>5.1f} | {d_fit:>6.4f} {hand:>6.4f} {d_fit / hand:>5.2f} {l_fit / l_hand:>5.2f} | "
-              f"{secs:>4.0f} {fit.meta.get('method', 'query')}", flush=True)
+              f"{ang:>5.1f} {100 * cell:>5.1f} | {d_fit:>6.4f} {hand:>6.4f} {d_fit / hand:>5.2f} "
+              f"{l_fit / l_hand:>5.2f} | {secs:>4.0f} {fit.meta.get('method', 'query')}", flush=True)
         if panels:
             _panel(panels / f"real_{name}.png", imgs)
     return rows
