@@ -13,7 +13,7 @@ Each mask is 512x512, white = the thin network (mortar, slate edges, panel seams
 * metal_plate_seams.png: metal_plate_02, same high-passed height (sigma 12 px), white = the lowest 8 % (the
   recessed seams between panels; the tread pattern sits above them).
 * metal_plate_courses.png: metal_plate_02, the first layer of the pipeline's automatic decomposition at working
-  size 512 (``workers.decompose.decompose``, two layers, seed 0; the seams, widened by the matting to 6-10 px):
+  size 512 (``workers.decompose.decompose``, two layers, seed 0; the seams, widened by the matting to 12-20 px):
   plates 86 px wide in courses 125 px apart, each course offset by about half a plate, the offset drifting by a
   few pixels, which the lattice analysis once read as a cell of two courses.
 * rusty_metal_rust.png: rusty_metal_05, albedo luminance blurred (sigma 2 px), white = the darkest 40 %: a
