@@ -178,17 +178,6 @@ def run_synthetic(args, index, panels: Path | None) -> list[dict]:
     return rows
 
 
-def cell_error(target: L.Lattice, params) -> float:
-    """Relative difference between the target's 2-D cell area and the nearest cell area of the lattices the
-    fit's layout puts its cells on (inf for a target without a 2-D lattice): a cell of two courses where the
-    target has one is 100 %, whatever the period."""
-    if target.kind != "2d":
-        return float("inf")
-    area = abs(float(np.linalg.det(np.array(target.vectors))))
-    return min((abs(abs(float(np.linalg.det(np.array(x.vectors)))) - area) / area for x in L.layout_lattices(params)
-                if len(x.vectors) == 2), default=float("inf"))
-
-
 def run_real(args, index, panels: Path | None) -> list[dict]:
     from skimage.io import imread
 
@@ -212,7 +201,7 @@ def run_real(args, index, panels: Path | None) -> list[dict]:
         rows.append(dict(name=name, period=lt.period, period_err=per, angle_err=ang, ratio=d_fit / hand,
                          ratio_loss=l_fit / l_hand, seconds=secs))
         fit_period = L.rows_match(out, lt)[0] if lt.kind == "rows" else (lo.period or 0.0)
-        cell = cell_error(lt, fit.params)
+        cell = L.cell_area_error(lt, fit.params)
         print(f"{name:<22} {lt.kind:>5} {lt.period or 0:>6.1f} | {fit_period:>7.1f} {100 * per:>5.1f} "
               f"{ang:>5.1f} {100 * cell:>5.1f} | {d_fit:>6.4f} {hand:>6.4f} {d_fit / hand:>5.2f} "
               f"{l_fit / l_hand:>5.2f} | {secs:>4.0f} {fit.meta.get('method', 'query')}", flush=True)

@@ -996,6 +996,18 @@ def compare_layouts(truth, fit) -> tuple[float, float]:
     return min(pairs, key=lambda e: (max(e[0] / 0.05, e[1] / 3.0), e), default=(math.inf, math.inf))
 
 
+def cell_area_error(target: Lattice, params) -> float:
+    """Relative difference between `target`'s 2-D cell area and the nearest cell area of the lattices parameter
+    vector `params`' layout puts its cells on (``layout_lattices``); inf when either has no 2-D lattice. A cell of
+    two courses where the target has one is 100 % off whatever the period (``compare_lattices`` compares the
+    shortest vectors)."""
+    if target.kind != "2d":
+        return math.inf
+    area = abs(float(np.linalg.det(np.array(target.vectors))))
+    return min((abs(abs(float(np.linalg.det(np.array(x.vectors)))) - area) / area for x in layout_lattices(params)
+                if len(x.vectors) == 2), default=math.inf)
+
+
 def compare_lattices(target: Lattice, other: Lattice) -> tuple[float, float]:
     """(relative error of the period, angle error in degrees) of `other`'s lattice against `target`'s, both
     ways: each reduced basis vector of one against the closest short vector of the other; the worst (a denser
