@@ -73,11 +73,11 @@ class RecomposeConfig:
     weights: dict = field(default_factory=lambda: {"albedo": 1.0, "normal": 1.0, "roughness": 1.0,
                                                    "height": 1.0, "metallic": 1.0, "renders": 1.0})
     features: str = "vgg19"              # Gram features of the loss: "vgg19" (pretrained, the paper's) | "random"
-    vgg_layers: int = 4                  # VGG-19 Gram layers used: relu1_1.. (3: up to relu3_1; 4: relu4_1, as the
-                                         # evaluation; relu4_1 carried most of the remaining distance, and with
-                                         # it in the loss all 8 maps of rusty/plastered came nearer the input,
-                                         # same masks: plastered albedo 1.71 -> 1.48, normal 2.53 -> 2.29, at
-                                         # about 1.15x the recomposition time)
+    vgg_layers: int = 3                  # VGG-19 Gram layers used: relu1_1.. (3: up to relu3_1; 4: relu4_1). 4, as
+                                         # the evaluation scores, was measured on the six materials at 512: 15 of 24
+                                         # maps nearer the input (plastered albedo 1.62 -> 1.38, roof albedo 5.59 ->
+                                         # 4.05) but castle normal 2.47 -> 3.18 and coast roughness 1.93 -> 2.28,
+                                         # median 2.03 -> 2.12, and recomposition ~1.3x slower (257 s mean): not default
     loss_size: int | None = None         # maps and renders area-averaged to this longer side before the Gram
                                          # and SSIM terms (None: half the maps' longer side, at least 128; 0: full
                                          # size); the graph itself runs at full size. At a quarter of 512 px the
