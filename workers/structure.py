@@ -8,9 +8,10 @@ high = an edge or a step; each high-passed normal slope component, one sign at a
 the lower edges of overlapping slates or shingles, which the tilt mixes with the wood grain inside them) and,
 when the relief shows no layout, the albedo's high-passed luminance (dark lines). Each source is cut at a few
 shares of the pixels and the lattice analysis (workers.lattice) scores every cut; the cut with a significant 2-D
-lattice whose autocorrelation repeats most (regularity) is the split, or rows that repeat far more clearly
+lattice whose autocorrelation repeats most (regularity) shows the layout, or rows that repeat far more clearly
 (``layout_rank``; a one-directional repeat is often a harmonic of the layout: roof_slates_02's fine grooves
-repeat at half the slates' spacing). A cut that the median filter thins to under ``min_kept`` of its share is lines
+repeat at half the slates' spacing); the split is the thinnest cut of that layout ranked nearly as high
+(``_thinnest``: wider bands repeat more smoothly than the network itself). A cut that the median filter thins to under ``min_kept`` of its share is lines
 thinner than the filter (the two 1 px flanks of a 2 px groove in the tilt): its remnant can repeat very regularly
 while it misses most of the network (a running bond of 8 px courses: IoU 0.41 with the mortar against 0.65), so it
 is not a candidate. The chosen cut's white pixels are layer 0 (the network), the rest layer 1. Sources and cuts are
@@ -43,6 +44,8 @@ class StructureConfig:
     median: int = 3                                        # median filter of a cut (px at full size; 0 = none)
     min_kept: float = 0.45                                 # a cut the median filter thins below this share of
     #                                                        its pixels is hairlines, not a network: skipped
+    thin_margin: float = 0.9                               # the thinnest cut of the same layout ranked within this
+    #                                                        share of the best is the split (see _thinnest)
 
 
 @dataclass
@@ -136,6 +139,35 @@ def _small(src: np.ndarray, size: int) -> tuple[np.ndarray, float]:
     return ndimage.zoom(ndimage.uniform_filter(src, max(1, int(round(1 / k))), mode="wrap"), k, order=1), k
 
 
+#: two cuts show the same layout when their lattices are of one kind and their periods within this share
+SAME_PERIOD = 0.10
+#: a source's cuts ranked within this share of its best are equally regular (see _thinnest)
+SOURCE_FLAT = 0.02
+
+
+def _thinnest(ranked: list[tuple[float, str, float, str, float]], margin: float):
+    """Of (rank, source, share, kind, period) cuts: the split, or None for an empty list.
+
+    Each source's cut is its best ranked share, or the widest share ranked within SOURCE_FLAT of it (a
+    regularity flat across shares means the wider cut is still inside the network). Of those, the split is the
+    thinnest cut whose layout is the best cut's (same kind, period within SAME_PERIOD) ranked within ``margin``
+    of it: regularity grows with the width of the lines, so across sources the best ranked cut is often a wider
+    band than the network. metal_plate_02 at 512 px ranks the normals' tilt at 25 % first (0.549; the bevels
+    on both sides of each seam, bands 12-20 px wide) while the fine groove's 8 % cut (0.527) has the input's
+    2-3 px seams on the same lattice. The castle's mortar and the roof's slate rows keep their cuts."""
+    if not ranked:
+        return None
+    per_source: dict[str, tuple] = {}
+    for name in {r[1] for r in ranked}:
+        own = [r for r in ranked if r[1] == name]
+        peak = max(r[0] for r in own)
+        per_source[name] = max((r for r in own if r[0] >= (1.0 - SOURCE_FLAT) * peak), key=lambda r: r[2])
+    top = max(ranked, key=lambda r: r[0])
+    same = [r for r in per_source.values() if r[3] == top[3] and abs(r[4] - top[4]) <= SAME_PERIOD * top[4]
+            and r[0] >= margin * top[0]]
+    return min(same, key=lambda r: (r[2], -r[0]))   # the top cut's own source is always in `same`
+
+
 def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
                    config: StructureConfig | None = None) -> StructureSplit | None:
     """The structural first split (see the module doc), or None when neither relief nor albedo has a layout."""
@@ -143,7 +175,7 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
     groups = structure_sources(albedo, height, normal, cfg)
     cands: list[dict] = []
     for group in ("relief", "albedo"):
-        best, best_one_sided = None, None
+        ranked: dict[bool, list[tuple[float, str, float, str, float]]] = {True: [], False: []}
         for name, src in groups[group].items():
             small, k = _small(src, cfg.analysis_size)
             med = max(1, int(round(cfg.median * k))) if cfg.median > 1 else 0
@@ -158,18 +190,16 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
                               "regularity": round(float(lat.regularity), 4),
                               "significance": round(float(lat.significance), 3),
                               "period_full": None if lat.period is None else round(lat.period / k, 2)})
-                rank = layout_rank(lat)
                 if lat.kind == "none" or kept < cfg.min_kept:
                     continue
-                if name.startswith(ONE_SIDED):
-                    if best_one_sided is None or rank > best_one_sided[0]:
-                        best_one_sided = (rank, name, share)
-                elif best is None or rank > best[0]:
-                    best = (rank, name, share)
-        if best_one_sided is not None and best is not None and best_one_sided[0] > ONE_SIDED_MARGIN * best[0]:
-            best = best_one_sided
+                ranked[name.startswith(ONE_SIDED)].append((layout_rank(lat), name, share, lat.kind, lat.period / k))
+        best = _thinnest(ranked[False], cfg.thin_margin)
+        one_sided = _thinnest(ranked[True], cfg.thin_margin)
+        if one_sided is not None and best is not None and \
+                max(r[0] for r in ranked[True]) > ONE_SIDED_MARGIN * max(r[0] for r in ranked[False]):
+            best = one_sided
         if best is not None:
-            _, name, share = best
+            _, name, share, _, _ = best
             mask = _cut(groups[group][name], share, cfg.median)
             lat = analyse_lattice(mask)
             if lat.kind == "none":
