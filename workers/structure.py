@@ -2,21 +2,21 @@
 seams, slate edges), found in the relief before any colour.
 
 A brick wall's first split is mortar vs bricks, not "dark" vs "light": a colour split puts dark stains with the
-mortar and loses the seams of a metal plate. Candidates are binary masks cut from *structure sources*: the
-relief (height from the normals, high-passed at a fine and a coarse scale, low = a groove; the normals' tilt,
-high = an edge or a step; each high-passed normal slope component, one sign at a time = steps facing one way:
-the lower edges of overlapping slates or shingles, which the tilt mixes with the wood grain inside them) and,
-when the relief shows no layout, the albedo's high-passed luminance (dark lines). Each source is cut at a few
-shares of the pixels and the lattice analysis (workers.lattice) scores every cut; the cut with a significant 2-D
-lattice whose autocorrelation repeats most (regularity) shows the layout, or rows that repeat far more clearly
-(``layout_rank``; a one-directional repeat is often a harmonic of the layout: roof_slates_02's fine grooves
-repeat at half the slates' spacing); the split is the thinnest cut of that layout ranked nearly as high
-(``_thinnest``: wider bands repeat more smoothly than the network itself). A cut that the median filter thins to under ``min_kept`` of its share is lines
-thinner than the filter (the two 1 px flanks of a 2 px groove in the tilt): its remnant can repeat very regularly
-while it misses most of the network (a running bond of 8 px courses: IoU 0.41 with the mortar against 0.65), so it
-is not a candidate. The chosen cut's white pixels are layer 0 (the network), the rest layer 1. Sources and cuts are
-analysed at no more than ``analysis_size`` px (area-averaged), the chosen cut is made at full size. Materials
-without a layout (rust, sand, plaster) return None and keep the colour matting.
+mortar and loses the seams of a metal plate. Candidates are binary masks cut from *structure sources*: the relief
+(height from the normals, high-passed at a fine and a coarse scale, low = a groove; the normals' tilt, high = an
+edge or a step; each high-passed normal slope component, one sign at a time = steps facing one way: the lower
+edges of overlapping slates or shingles, which the tilt mixes with the wood grain inside them) and, when the
+relief shows no layout, the albedo's high-passed luminance (dark lines). Each source is cut at a few shares of the
+pixels and the lattice analysis (workers.lattice) scores every cut; the cut with a significant 2-D lattice whose
+autocorrelation repeats most (regularity) shows the layout, or rows that repeat far more clearly (``layout_rank``;
+a one-directional repeat is often a harmonic of the layout: roof_slates_02's fine grooves repeat at half the
+slates' spacing); the split is the thinnest cut of that layout ranked nearly as high (``_thinnest``: wider bands
+repeat more smoothly than the network itself). A cut that the median filter thins to under ``min_kept`` of its
+share is lines thinner than the filter (the two 1 px flanks of a 2 px groove in the tilt): its remnant can repeat
+very regularly while it misses most of the network (a running bond of 8 px courses: IoU 0.41 with the mortar
+against 0.65), so it is not a candidate. The chosen cut's white pixels are layer 0 (the network), the rest layer
+1. Sources and cuts are analysed at no more than ``analysis_size`` px (area-averaged), the chosen cut is made at
+full size. Materials without a layout (rust, sand, plaster) return None and keep the colour matting.
 """
 from __future__ import annotations
 
