@@ -256,3 +256,7 @@ def test_the_thinnest_cut_of_the_same_layout_is_the_split():
             (3.70, "g", 0.35, "2d", 34.0)]
     assert _thinnest(flat, 0.9)[1:3] == ("g", 0.25)
     assert _thinnest([], 0.9) is None
+    # a source's flat wider cut of another kind is not its pick; a margin above the flat band keeps the top cut
+    mixed = [(1.00, "t", 0.15, "2d", 40.0), (0.99, "t", 0.35, "rows", 40.0), (0.95, "g", 0.08, "2d", 40.0)]
+    assert _thinnest(mixed, 0.9)[1:3] == ("g", 0.08)
+    assert _thinnest(mixed, 0.995)[1:3] == ("t", 0.15)

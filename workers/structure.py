@@ -148,8 +148,8 @@ SOURCE_FLAT = 0.02
 def _thinnest(ranked: list[tuple[float, str, float, str, float]], margin: float):
     """Of (rank, source, share, kind, period) cuts: the split, or None for an empty list.
 
-    Each source's cut is its best ranked share, or the widest share ranked within SOURCE_FLAT of it (a
-    regularity flat across shares means the wider cut is still inside the network). Of those, the split is the
+    Each source's cut is its best ranked share, or the widest share of the same layout ranked within SOURCE_FLAT
+    of it (a regularity flat across shares means the wider cut is still inside the network). Of those, the split is the
     thinnest cut whose layout is the best cut's (same kind, period within SAME_PERIOD) ranked within ``margin``
     of it: regularity grows with the width of the lines, so across sources the best ranked cut is often a wider
     band than the network. metal_plate_02 at 512 px ranks the normals' tilt at 25 % first (0.549; the bevels
@@ -157,15 +157,18 @@ def _thinnest(ranked: list[tuple[float, str, float, str, float]], margin: float)
     2-3 px seams on the same lattice. The castle's mortar and the roof's slate rows keep their cuts."""
     if not ranked:
         return None
-    per_source: dict[str, tuple] = {}
+    def same_layout(a: tuple, b: tuple) -> bool:
+        return a[3] == b[3] and abs(a[4] - b[4]) <= SAME_PERIOD * b[4]
+
+    picks = []
     for name in {r[1] for r in ranked}:
         own = [r for r in ranked if r[1] == name]
-        peak = max(r[0] for r in own)
-        per_source[name] = max((r for r in own if r[0] >= (1.0 - SOURCE_FLAT) * peak), key=lambda r: r[2])
+        peak = max(own, key=lambda r: r[0])
+        picks.append(max((r for r in own if r[0] >= (1.0 - SOURCE_FLAT) * peak[0] and same_layout(r, peak)),
+                         key=lambda r: r[2]))
     top = max(ranked, key=lambda r: r[0])
-    same = [r for r in per_source.values() if r[3] == top[3] and abs(r[4] - top[4]) <= SAME_PERIOD * top[4]
-            and r[0] >= margin * top[0]]
-    return min(same, key=lambda r: (r[2], -r[0]))   # the top cut's own source is always in `same`
+    same = [r for r in picks if same_layout(r, top) and r[0] >= margin * top[0]]
+    return min(same, key=lambda r: (r[2], -r[0])) if same else top
 
 
 def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
