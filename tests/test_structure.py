@@ -69,9 +69,14 @@ def test_first_split_is_the_mortar_not_the_stains():
     per, ang = L.compare_lattices(L.analyse_lattice(mortar), L.analyse_lattice(net))
     assert per < 0.05 and ang < 3.0
     assert "structure" not in decompose(maps, {"layers": 2, "structure": False}).meta
+    # the stained mortar is a shade of its own: the network splits into stained and clean mortar
+    assert [c.id for c in root.children[0].children] == ["root.0.0", "root.0.1"]
+    best = max(_iou(c.mask, stains & net) for c in root.children[0].children)
+    assert best >= 0.8 and root.children[0].meta["shade_separation"] >= 2.0, best
     # more layers: the stains become a nested colour split of the bricks
     nested = decompose(maps, {"layers": 3})
-    assert [c.id for c in nested.walk()] == ["root", "root.0", "root.1", "root.1.0", "root.1.1"]
+    assert [c.id for c in nested.walk()] == ["root", "root.0", "root.0.0", "root.0.1", "root.1", "root.1.0",
+                                             "root.1.1"]
     bricks = nested.children[1]
     best = max(_iou(c.mask, stains & bricks.mask) for c in bricks.children)
     assert best >= 0.7, best
@@ -87,6 +92,18 @@ def _shaded_wall(seed: int = 0, dark_share: float = 0.3, worn: float = 0.0,
     albedo = np.where(mortar[..., None], np.float32([0.55, 0.52, 0.48]), np.float32([0.50, 0.16, 0.08]))
     albedo = np.where(dark[..., None], np.float32([0.16, 0.10, 0.07]), albedo)
     return _maps(albedo, height, rng), mortar, dark
+
+
+def test_network_of_one_shade_stays_one_leaf():
+    """Mortar of one colour is one leaf (the matting's second layer there is the few brick pixels at the edges of
+    the relief cut, under AUTO_NETWORK_MIN_SHARE of it); ``children.0 = leaf`` keeps stained mortar one leaf."""
+    maps, mortar, _ = _shaded_wall()
+    net = decompose(maps, {"layers": 2}).children[0]
+    print(f"network: {net.method}, shade separation {net.meta.get('shade_separation')}")
+    assert net.children == [] and net.method != "matting"
+    stained, _, _ = _wall()
+    kept = decompose(stained, {"layers": 2, "children": {"0": {"method": "leaf"}}}).children[0]
+    assert kept.children == [] and "shade_separation" not in kept.meta
 
 
 def test_cells_of_two_shades_become_instance_kinds():
