@@ -4,7 +4,8 @@ Run: python bench/job_panels.py JOB_DIR [--out DIR] [--seed 0]
 
 Per material folder of JOB_DIR (one with material.json), one PNG: top row the input albedo at the working size
 (load/maps) | the procedural albedo regenerated at the same size and pattern size (a fresh seed); bottom row each
-decomposition mask (decompose/masks) | its fitted PPTBF mask rendered as the graph renders it. Also prints, per
+decomposition mask (decompose/masks) | its fitted PPTBF mask rendered as the graph renders it (a nested split's
+inside its parent's fitted mask, as the graph uses it). Also prints, per
 material and mask, the lattice of the decomposition mask and of the fitted mask (period, kind).
 """
 from __future__ import annotations
@@ -38,8 +39,8 @@ def material_panel(mdir: Path, seed: int) -> tuple[np.ndarray, list[str]]:
     h, w = albedo_in.shape[:2]
     maps = graph.evaluate(mat, w, h, scale=mat.working_scale, seed=seed)  # the working input's pattern size
     rows = [np.concatenate([albedo_in, np.ones((h, 4, 3), np.float32), linear_to_srgb(maps["albedo"])[..., :3]], 1)]
-    lines = []
-    for fit_file in sorted((mdir / "masks").glob("*.json")):
+    lines, fits = [], {}
+    for fit_file in sorted((mdir / "masks").glob("*.json"), key=lambda f: (f.stem.count("."), f.stem)):
         doc = json.loads(fit_file.read_text())
         node = doc["node"]
         src = mdir / "decompose" / "masks" / f"{fit_file.stem}.png"
@@ -52,6 +53,9 @@ def material_panel(mdir: Path, seed: int) -> tuple[np.ndarray, list[str]]:
             continue
         ctx = graph.EvalContext(width=w, height=h, seed=seed, working_size=mat.working_size)
         fitted = graph.evaluate_node(mat, nid, ctx)[..., 0] > 0.5
+        if doc.get("parent") in fits:   # a nested split's mask as the graph uses it: inside its parent's fit
+            fitted &= fits[doc["parent"]]
+        fits[node] = fitted
         lt, lf = L.analyse_lattice(target), L.analyse_lattice(fitted)
         per, ang = L.compare_lattices(lt, lf)
         lines.append(f"{mdir.name} {node}: target {lt.kind} period {lt.period or 0:.1f} px | fit {lf.kind} period "

@@ -277,3 +277,27 @@ def test_the_thinnest_cut_of_the_same_layout_is_the_split():
     mixed = [(1.00, "t", 0.15, "2d", 40.0), (0.99, "t", 0.35, "rows", 40.0), (0.95, "g", 0.08, "2d", 40.0)]
     assert _thinnest(mixed, 0.9)[1:3] == ("g", 0.08)
     assert _thinnest(mixed, 0.995)[1:3] == ("t", 0.15)
+
+
+@pytest.mark.slow
+def test_real_castle_network_splits_into_light_mortar_and_dark_edges(materials_dir):
+    """castle_brick_broken_06 at 512 px: the relief's grooves hold the light mortar and the dark shadowed edges
+    of the bricks; the network splits into those two shades (luminance of the lighter layer's mean >= 2x the
+    darker's, the lighter 15-50 % of the network), while metal_plate_02's seams (separation 1.92) and
+    roof_slates_02's slate edges (0.03) stay one leaf."""
+    from workers.maps import load_material
+
+    kinds = {}
+    for name in ("castle_brick_broken_06", "metal_plate_02", "roof_slates_02"):
+        f = real_material_files(name)
+        m = load_material(f["albedo"], f["normal"], f["roughness"], roughness_channel=f["roughness_channel"],
+                          working_size=512, normal_convention="auto" if name == "roof_slates_02" else "opengl")
+        net = decompose(m, {"layers": 2}).children[0]
+        luma = m.albedo @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        kinds[name] = (net.meta["shade_separation"], [(float(luma[c.mask].mean()), float(c.mask.sum() / net.mask.sum()))
+                                                       for c in net.children])
+        print(f"{name}: separation {kinds[name][0]}, layers (mean luminance, share of the network) {kinds[name][1]}")
+    sep, layers = kinds["castle_brick_broken_06"]
+    (dark, _), (light, light_share) = sorted(layers)
+    assert sep >= 2.0 and light >= 2 * dark and 0.15 <= light_share <= 0.5
+    assert kinds["metal_plate_02"][1] == [] and kinds["roof_slates_02"][1] == []
