@@ -281,8 +281,9 @@ def _cell_kinds(cells: MaskNode, fm: FeatureMaps, period: float | None, seed: in
 
 
 def shade_separation(colour: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    """How far apart two pixel sets are in luminance of the sRGB albedo (``colour``'s first 3 channels): the
-    difference of the means over the pooled standard deviation (a Fisher-like d'; 0 = the same shade)."""
+    """How far apart two pixel sets are in luma (Rec. 709 weights of the sRGB albedo, ``colour``'s first 3
+    channels): the difference of the means over the pooled standard deviation (a Fisher-like d'; 0 = the same
+    shade)."""
     luma = colour[..., :3] @ np.array([0.2126, 0.7152, 0.0722], dtype=colour.dtype)
     la, lb = luma[a], luma[b]
     pooled = np.sqrt(0.5 * (la.var() + lb.var())) + 1e-6
@@ -295,7 +296,8 @@ def _network_shades(network: MaskNode, fm: FeatureMaps, seed: int) -> None:
     the bricks (70 %); as one leaf their noise mixes both into a muddy red-brown in every joint, and the light
     mortar lines, the first thing one sees in the input, are gone. A split whose two layers are less than
     ``AUTO_NETWORK_SEPARATION`` apart (``shade_separation``) or one of which is under ``AUTO_NETWORK_MIN_SHARE`` of
-    the network stays one leaf (roof_slates_02's slate edges split into two layers of the same shade, d' 0.1)."""
+    the network stays one leaf (roof_slates_02's slate edges at 512 px split into two layers of the same shade,
+    0.03 apart)."""
     if int(np.count_nonzero(network.mask)) < MIN_AUTO_SPLIT_PIXELS:
         return
     res = matte(fm, network.mask, 2, None, MattingConfig(), seed)
