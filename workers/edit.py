@@ -19,7 +19,8 @@ from workers import graph
 from workers.errors import GraphError, InputError
 
 # noise-node fields that are fitted data, not knobs (changing them alone does nothing sensible)
-_DATA_KEYS = {"kind", "layers", "info", "quantiles", "pca_basis", "pca_mean", "base", "fit_size", "meta", "spectrum"}
+_DATA_KEYS = {"kind", "layers", "info", "quantiles", "pca_basis", "pca_mean", "base", "fit_size", "meta", "spectrum",
+              "transport"}
 _SHORT_LIST = 4  # number lists up to this length are one parameter (a per-channel value)
 
 

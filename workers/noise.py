@@ -8,7 +8,10 @@ defined for regions no window fits in, such as rows of slates; the spec's window
 those 8 px windows or white noise); the last (lowest-frequency) layer's
 full-image spectrum (holes weighted out by a smooth mask taper, then low-passed by the pyramid's own
 Gaussian) is approximated by a few Gabor kernels (Galerne et al. 2012). Per-channel quantiles of the masked input
-are kept for histogram matching. No input pixel is stored.
+are kept for histogram matching and, for colour maps, a 3-D colour transport (iterated sliced histogram matching,
+Pitie et al. 2007: the quantiles of the input's colours along a few fixed rotated axes), so the synthesis keeps
+the joint colour distribution and not only its three marginals (matched channel by channel, a rust's noise had
+1.5 times the input's share of red-dominant pixels). No input pixel is stored.
 
 Synthesis is procedural: one complex white-noise field per PCA component is shaped by each layer's
 spectrum resampled to the output grid (FFT at the output size: exactly stationary, periodic so maps
@@ -36,7 +39,9 @@ from .gabor import fit_gabor, gabor_psd
 
 logger = logging.getLogger(__name__)
 
-PARAMS_KIND = "proceduralize.noise/1"
+PARAMS_KIND = "proceduralize.noise/1.1"   # 1.1 adds "transport" (3-D colour transport)
+#: noise params kinds this version reads (1: per-channel histogram matching only)
+SUPPORTED_KINDS = ("proceduralize.noise/1", PARAMS_KIND)
 
 
 @dataclass
@@ -54,6 +59,8 @@ class NoiseConfig:
     gabor_last: bool = True               # last layer from the full-image spectrum as Gabor kernels
     n_gabor: int = 16                     # Gabor kernels per PCA component of the last layer
     n_quantiles: int = 64                 # stored quantiles per channel for histogram matching
+    transport: int = 12                   # rotations of the colour transport of maps with >= 2 channels (0: none,
+    #                                       channels matched one by one only)
     per_piece: tuple[str, ...] = ("height",)  # maps whose instance kinds get one offset per piece at render
     #                                       time, their noise fitted on the within-piece residual (workers.pieces):
     #                                       bricks set at different depths give the normals their steps at the
@@ -66,8 +73,8 @@ class NoiseConfig:
             raise InputError(f"NoiseConfig.n_levels={self.n_levels} must be in [0, {len(self.kernel_sizes)}]")
         if self.window < 4 or self.pairs < 0:
             raise InputError("NoiseConfig: need window >= 4 and pairs >= 0")
-        if self.n_quantiles < 2 or self.n_gabor < 1:
-            raise InputError("NoiseConfig: need n_quantiles >= 2 and n_gabor >= 1")
+        if self.n_quantiles < 2 or self.n_gabor < 1 or self.transport < 0:
+            raise InputError("NoiseConfig: need n_quantiles >= 2, n_gabor >= 1 and transport >= 0")
 
 
 @dataclass
@@ -91,6 +98,60 @@ class NoiseLayer:
         return np.maximum(out, 0.0)
 
 
+#: fixed seed of the colour transport's rotations (they are stored with the model: this only makes fits repeatable)
+_TRANSPORT_SEED = 0x636F6C6F
+
+
+@dataclass
+class ColourTransport:
+    """Iterated sliced histogram matching onto a colour distribution (Pitie et al. 2007): each step rotates the
+    colours, matches each rotated axis to the stored quantiles of the target's colours along it, and rotates
+    back. A few steps move the joint distribution (hue and saturation, not only each channel) onto the target."""
+
+    rotations: np.ndarray     # (R, C, C) orthonormal, columns the axes
+    quantiles: np.ndarray     # (R, Q, C) quantiles of the target's colours along each step's axes
+
+    @classmethod
+    def fit(cls, pixels: np.ndarray, steps: int, n_quantiles: int) -> ColourTransport:
+        """The transport onto ``pixels`` (N x C): ``steps`` random rotations (fixed seed) and their quantiles."""
+        c = pixels.shape[1]
+        rng = np.random.default_rng(_TRANSPORT_SEED)
+        rots = []
+        for _ in range(steps):
+            q, r = np.linalg.qr(rng.standard_normal((c, c)))
+            rots.append(q * np.sign(np.diag(r)))
+        rotations = np.stack(rots).astype(np.float32)
+        probs = np.linspace(0.0, 1.0, n_quantiles)
+        px = pixels.astype(np.float32)
+        quantiles = np.stack([np.quantile(px @ rot, probs, axis=0) for rot in rotations]).astype(np.float32)
+        return cls(rotations=rotations, quantiles=quantiles)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """The transported colours of ``x`` (C x H x W)."""
+        for rot, q in zip(self.rotations, self.quantiles):
+            y = np.tensordot(rot.T, x, axes=([1], [0]))
+            y = histogram_match(y, q, channel_axis=0)
+            x = np.tensordot(rot, y, axes=([1], [0]))
+        return x.astype(np.float32, copy=False)
+
+    def to_params(self) -> dict:
+        """JSON-able params (arrays via :func:`workers.arrays.encode_array`)."""
+        return {"rotations": encode_array(self.rotations, "float32"),
+                "quantiles": encode_array(self.quantiles, "float32")}
+
+    @classmethod
+    def from_params(cls, params: dict, c: int) -> ColourTransport:
+        """Rebuild from :meth:`to_params` output for C channels (GraphError naming the field if malformed)."""
+        rot = decode_array(params["rotations"]).astype(np.float32)
+        q = decode_array(params["quantiles"]).astype(np.float32)
+        if rot.ndim != 3 or rot.shape[1:] != (c, c) or q.ndim != 3 or q.shape[0] != rot.shape[0] or q.shape[2] != c:
+            raise GraphError(f"noise transport: rotations {rot.shape} and quantiles {q.shape} must be (R, {c}, {c}) "
+                             f"and (R, Q, {c})")
+        if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(q))):
+            raise GraphError("noise transport: rotations and quantiles must be finite")
+        return cls(rotations=rot, quantiles=q)
+
+
 @dataclass
 class NoiseModel:
     """A fitted noise model: everything synthesis needs, and nothing from the input pixels."""
@@ -102,6 +163,7 @@ class NoiseModel:
     quantiles: np.ndarray            # (Q, C) quantiles of the masked input at linspace(0, 1, Q)
     fit_size: tuple[int, int]        # (height, width) of the fitted image
     info: dict = field(default_factory=dict)
+    transport: ColourTransport | None = None   # joint colour distribution (colour maps), before ``quantiles``
 
     @property
     def channels(self) -> int:
@@ -128,14 +190,15 @@ class NoiseModel:
             "layers": layers,
             "fit_size": [int(self.fit_size[0]), int(self.fit_size[1])],
             "info": _jsonable(self.info),
-        }
+        } | ({"transport": self.transport.to_params()} if self.transport is not None else {})
 
     @classmethod
     def from_params(cls, params: dict) -> NoiseModel:
         """Rebuild a model from :meth:`to_params` output (GraphError naming the field if it is malformed)."""
         try:
-            if params.get("kind") != PARAMS_KIND:
-                raise GraphError(f"noise params 'kind' must be {PARAMS_KIND!r}, got {params.get('kind')!r}")
+            if params.get("kind") not in SUPPORTED_KINDS:
+                raise GraphError(f"noise params 'kind' must be one of {', '.join(SUPPORTED_KINDS)}, "
+                                 f"got {params.get('kind')!r}")
             base = np.asarray(params["base"], dtype=np.float32)
             c = base.size
             layers = []
@@ -157,7 +220,9 @@ class NoiseModel:
                         pca_basis=decode_array(params["pca_basis"]).reshape(c, c),
                         layers=layers, quantiles=decode_array(params["quantiles"]).reshape(-1, c),
                         fit_size=tuple(int(v) for v in params.get("fit_size", (0, 0))),
-                        info=dict(params.get("info", {})))
+                        info=dict(params.get("info", {})),
+                        transport=ColourTransport.from_params(params["transport"], c) if "transport" in params
+                        else None)
         except GraphError:
             raise
         except (KeyError, TypeError, ValueError) as exc:
@@ -173,7 +238,7 @@ class NoiseLayers:
 
     base: np.ndarray              # (C,)
     layers: list[np.ndarray]      # each HxWxC
-    matched: np.ndarray           # HxWxC: base + sum(layers), histogram-matched to the stored quantiles
+    matched: np.ndarray           # HxWxC: base + sum(layers), colour-transported, histogram-matched (quantiles)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -352,6 +417,7 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
     # the value histogram from the same pixels as the spectra: the eroded edge holds the neighbour's colours
     quantiles = np.quantile(img[em], qprobs, axis=0).astype(np.float32)
 
+    transport = ColourTransport.fit(img[em], cfg.transport, cfg.n_quantiles) if c >= 2 and cfg.transport else None
     mean, basis, var = _pca(img[em].astype(np.float64))
     y = ((img - mean.astype(np.float32)) @ basis.astype(np.float32)).astype(np.float32)
     bands, cur = [], y
@@ -383,7 +449,7 @@ def fit_noise(image: np.ndarray, mask: np.ndarray | None = None, config: NoiseCo
             "pca_var": var.tolist(), "layers": info_layers, "config": _jsonable(asdict(cfg))}
     logger.debug("fit_noise %dx%dx%d: T=%d", h, w, c, t)
     return NoiseModel(base=base, pca_mean=mean.astype(np.float32), pca_basis=basis.astype(np.float32),
-                      layers=layers, quantiles=quantiles, fit_size=(h, w), info=info)
+                      layers=layers, quantiles=quantiles, fit_size=(h, w), info=info, transport=transport)
 
 
 def mask_taper(mask: np.ndarray, ramp: float) -> np.ndarray:
@@ -595,6 +661,8 @@ def _synthesize(model: NoiseModel, width: int, height: int, scale: float, seed: 
     layers = [np.ascontiguousarray(np.moveaxis(v, 0, -1)) for v in layers_c]
     del layers_c
     total += model.base.astype(np.float32)[:, None, None]
+    if model.transport is not None:
+        total = model.transport.apply(total)
     matched = np.ascontiguousarray(np.moveaxis(histogram_match(total, model.quantiles, channel_axis=0), 0, -1))
     return NoiseLayers(base=model.base.copy(), layers=layers, matched=matched)
 
@@ -604,7 +672,8 @@ def synthesize_layers(model: NoiseModel, width: int, height: int, scale: float =
     """Procedural synthesis at any size/scale from the stored parameters only; same seed -> same output.
 
     ``scale`` = output pixels per fitted pixel of pattern. Layers are zero-mean, in the original colour space;
-    ``matched`` = histogram-matched base + sum(layers). Output is periodic (tiles) in both directions.
+    ``matched`` = base + sum(layers), colour-transported (colour maps) and histogram-matched. Output is periodic
+    (tiles) in both directions.
     """
     return _synthesize(model, width, height, scale, seed, with_layers=True, tile=tile)
 
