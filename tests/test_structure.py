@@ -255,28 +255,36 @@ def test_real_slate_rows_are_the_first_split_at_the_job_working_size(materials_d
 
 
 def test_the_thinnest_cut_of_the_same_layout_is_the_split():
-    """Ranked cuts (rank, source, share, kind, period): the split is the thinnest cut of the best cut's layout
-    ranked within the margin (a fine groove's 8 % cut against the tilt's wider 25 % band on the same plates), not
-    a thinner cut of another period or kind, nor one ranked below the margin; a source whose rank is flat across
-    shares gives its widest cut (still inside the network)."""
+    """Ranked cuts (rank, source, share, kind, period, significance): the split is the thinnest cut of the best
+    cut's layout ranked within the margin (a fine groove's 8 % cut against the tilt's wider 25 % band on the same
+    plates), not a thinner cut of another period or kind, nor one ranked below the margin; a source whose rank is
+    flat across shares gives its widest cut (still inside the network) that is still a repeat by itself
+    (significance 2.5)."""
     from workers.structure import _thinnest
 
-    plates = [(2.20, "tilt", 0.25, "2d", 86.0), (2.18, "tilt", 0.15, "2d", 85.5),
-              (2.10, "groove3", 0.08, "2d", 85.8), (1.80, "groove3", 0.15, "2d", 85.9)]
+    plates = [(2.20, "tilt", 0.25, "2d", 86.0, 3.0), (2.18, "tilt", 0.15, "2d", 85.5, 3.0),
+              (2.10, "groove3", 0.08, "2d", 85.8, 3.0), (1.80, "groove3", 0.15, "2d", 85.9, 3.0)]
     assert _thinnest(plates, 0.9)[1:3] == ("groove3", 0.08)
     assert _thinnest(plates, 0.97)[1:3] == ("tilt", 0.25)                # groove3 below the margin
-    harmonic = [(0.61, "slope", 0.15, "rows", 19.6), (0.58, "slope", 0.08, "rows", 8.7)]
+    harmonic = [(0.61, "slope", 0.15, "rows", 19.6, 3.0), (0.58, "slope", 0.08, "rows", 8.7, 3.0)]
     assert _thinnest(harmonic, 0.9)[1:3] == ("slope", 0.15)                # another period: not the layout
-    other_kind = [(0.60, "a", 0.25, "2d", 20.0), (0.59, "b", 0.08, "rows", 20.0)]
+    other_kind = [(0.60, "a", 0.25, "2d", 20.0, 3.0), (0.59, "b", 0.08, "rows", 20.0, 3.0)]
     assert _thinnest(other_kind, 0.9)[1:3] == ("a", 0.25)
-    flat = [(3.836, "g", 0.08, "2d", 34.0), (3.829, "g", 0.15, "2d", 34.0), (3.834, "g", 0.25, "2d", 34.0),
-            (3.70, "g", 0.35, "2d", 34.0)]
+    flat = [(3.836, "g", 0.08, "2d", 34.0, 3.0), (3.829, "g", 0.15, "2d", 34.0, 3.0),
+            (3.834, "g", 0.25, "2d", 34.0, 3.0), (3.70, "g", 0.35, "2d", 34.0, 3.0)]
     assert _thinnest(flat, 0.9)[1:3] == ("g", 0.25)
     assert _thinnest([], 0.9) is None
     # a source's flat wider cut of another kind is not its pick; a margin above the flat band keeps the top cut
-    mixed = [(1.00, "t", 0.15, "2d", 40.0), (0.99, "t", 0.35, "rows", 40.0), (0.95, "g", 0.08, "2d", 40.0)]
+    mixed = [(1.00, "t", 0.15, "2d", 40.0, 3.0), (0.99, "t", 0.35, "rows", 40.0, 3.0),
+             (0.95, "g", 0.08, "2d", 40.0, 3.0)]
     assert _thinnest(mixed, 0.9)[1:3] == ("g", 0.08)
     assert _thinnest(mixed, 0.995)[1:3] == ("t", 0.15)
+    # a flat wider cut that no longer stands as a repeat by itself is not the pick when a narrower one does
+    roof = [(0.5169, "slope", 0.25, "rows", 9.87, 2.56), (0.5171, "slope", 0.35, "rows", 9.83, 2.21),
+            (0.30, "slope", 0.15, "rows", 9.99, 3.67)]
+    assert _thinnest(roof, 0.9)[1:3] == ("slope", 0.25)
+    weak = [(r[0], r[1], r[2], r[3], r[4], 2.2) for r in roof]          # none stands: the widest flat cut
+    assert _thinnest(weak, 0.9)[1:3] == ("slope", 0.35)
 
 
 @pytest.mark.slow
