@@ -254,6 +254,25 @@ def test_real_slate_rows_are_the_first_split_at_the_job_working_size(materials_d
                                                                               ref_lat.orientation_deg)) <= 3.0
 
 
+def test_readme_roof_split_is_a_repeat_by_itself():
+    """The README job's roof (the 512 px copies shipped in examples/maps, at 256 px): the one-sided slope's cuts at
+    25 % and 35 % are equally regular (0.517), but the 35 % cut's thick broken lines no longer stand as a repeat
+    (significance 2.2) and were fitted as vertical dashes; the split is the 25 % cut, a repeat by itself."""
+    from workers.maps import load_material
+
+    d = Path(__file__).resolve().parents[1] / "examples" / "maps" / "roof_slates_02"
+    m = load_material(d / "roof_slates_02_diff_512.jpg", d / "roof_slates_02_nor_gl_512.jpg",
+                      d / "roof_slates_02_arm_512.jpg", roughness_channel="G", working_size=256,
+                      normal_convention="auto")
+    split = find_structure(m.albedo, m.height, m.normal)
+    assert split is not None and split.source.startswith("relief:slope") and split.lattice.kind == "rows"
+    same = [c for c in split.candidates if c["source"] == split.source.split(":")[1] and c["kind"] == "rows"]
+    wider = [c for c in same if c["share"] > split.share]
+    cuts = [(c["share"], c["regularity"], c["significance"]) for c in same]
+    print(f"roof README split {split.source} at {split.share}; cuts (share, regularity, significance) {cuts}")
+    assert split.share == 0.25 and split.lattice.significance >= 2.5
+    assert wider and all(c["significance"] < 2.5 for c in wider)     # the flat wider cut the old rule took
+
 def test_the_thinnest_cut_of_the_same_layout_is_the_split():
     """Ranked cuts (rank, source, share, kind, period, significance): the split is the thinnest cut of the best
     cut's layout ranked within the margin (a fine groove's 8 % cut against the tilt's wider 25 % band on the same
