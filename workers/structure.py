@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .lattice import Lattice, analyse_lattice
+from .lattice import Lattice, LatticeConfig, analyse_lattice
 
 logger = logging.getLogger(__name__)
 
@@ -143,9 +143,9 @@ def _small(src: np.ndarray, size: int) -> tuple[np.ndarray, float]:
 SAME_PERIOD = 0.10
 #: a source's cuts ranked within this share of its best are equally regular (see _thinnest)
 SOURCE_FLAT = 0.02
-#: a wider cut of a flat source must still be a repeat by itself: its lattice points this many ring deviations up
-#: (workers.lattice's own bar for a repeat; see _thinnest)
-FLAT_SIGNIFICANCE = 2.5
+#: a wider cut of a flat source must still be a repeat by itself: its lattice points as many ring deviations up as
+#: the lattice analysis asks of a repeat (see _thinnest)
+FLAT_SIGNIFICANCE = LatticeConfig.min_significance
 
 
 def _thinnest(ranked: list[tuple[float, str, float, str, float, float]], margin: float):
