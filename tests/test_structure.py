@@ -273,13 +273,18 @@ def test_readme_roof_split_is_a_repeat_by_itself():
     assert split.share == 0.25 and split.lattice.significance >= 2.5
     assert wider and all(c["significance"] < 2.5 for c in wider)     # the flat wider cut the old rule took
 
+
 def test_the_thinnest_cut_of_the_same_layout_is_the_split():
     """Ranked cuts (rank, source, share, kind, period, significance): the split is the thinnest cut of the best
     cut's layout ranked within the margin (a fine groove's 8 % cut against the tilt's wider 25 % band on the same
     plates), not a thinner cut of another period or kind, nor one ranked below the margin; a source whose rank is
     flat across shares gives its widest cut (still inside the network) that is still a repeat by itself
     (significance 2.5)."""
-    from workers.structure import _thinnest
+    from workers.structure import RankedCut
+    from workers.structure import _thinnest as thinnest
+
+    def _thinnest(cuts: list[tuple], margin: float):
+        return thinnest([RankedCut(*c) for c in cuts], margin)
 
     plates = [(2.20, "tilt", 0.25, "2d", 86.0, 3.0), (2.18, "tilt", 0.15, "2d", 85.5, 3.0),
               (2.10, "groove3", 0.08, "2d", 85.8, 3.0), (1.80, "groove3", 0.15, "2d", 85.9, 3.0)]
@@ -302,7 +307,7 @@ def test_the_thinnest_cut_of_the_same_layout_is_the_split():
     roof = [(0.5169, "slope", 0.25, "rows", 9.87, 2.56), (0.5171, "slope", 0.35, "rows", 9.83, 2.21),
             (0.30, "slope", 0.15, "rows", 9.99, 3.67)]
     assert _thinnest(roof, 0.9)[1:3] == ("slope", 0.25)
-    weak = [(r[0], r[1], r[2], r[3], r[4], 2.2) for r in roof]          # none stands: the widest flat cut
+    weak = [(*r[:5], 2.2) for r in roof]          # none stands: the widest flat cut
     assert _thinnest(weak, 0.9)[1:3] == ("slope", 0.35)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -148,8 +149,19 @@ SOURCE_FLAT = 0.02
 FLAT_SIGNIFICANCE = LatticeConfig.min_significance
 
 
-def _thinnest(ranked: list[tuple[float, str, float, str, float, float]], margin: float):
-    """Of (rank, source, share, kind, period, significance) cuts: the split, or None for an empty list.
+class RankedCut(NamedTuple):
+    """One candidate cut of a structure source, as :func:`_thinnest` compares them."""
+
+    rank: float             # layout_rank of its lattice
+    source: str
+    share: float
+    kind: str               # lattice kind: "2d" or "rows"
+    period: float           # at full size (px)
+    significance: float     # the lattice points' height in ring standard deviations
+
+
+def _thinnest(ranked: list[RankedCut], margin: float) -> RankedCut | None:
+    """Of the ranked cuts: the split, or None for an empty list.
 
     Each source's cut is its best ranked share, or the widest share of the same layout ranked within SOURCE_FLAT
     of it (a regularity flat across shares means the wider cut is still inside the network) that still stands as
@@ -164,19 +176,19 @@ def _thinnest(ranked: list[tuple[float, str, float, str, float, float]], margin:
     same lattice. The castle's mortar keeps its cut."""
     if not ranked:
         return None
-    def same_layout(a: tuple, b: tuple) -> bool:
-        return a[3] == b[3] and abs(a[4] - b[4]) <= SAME_PERIOD * b[4]
+    def same_layout(a: RankedCut, b: RankedCut) -> bool:
+        return a.kind == b.kind and abs(a.period - b.period) <= SAME_PERIOD * b.period
 
     picks = []
-    for name in {r[1] for r in ranked}:
-        own = [r for r in ranked if r[1] == name]
-        peak = max(own, key=lambda r: r[0])
-        flat = [r for r in own if r[0] >= (1.0 - SOURCE_FLAT) * peak[0] and same_layout(r, peak)]
-        repeats = [r for r in flat if r[5] >= FLAT_SIGNIFICANCE]
-        picks.append(max(repeats or flat, key=lambda r: r[2]))
-    top = max(ranked, key=lambda r: r[0])
-    same = [r for r in picks if same_layout(r, top) and r[0] >= margin * top[0]]
-    return min(same, key=lambda r: (r[2], -r[0])) if same else top
+    for name in {r.source for r in ranked}:
+        own = [r for r in ranked if r.source == name]
+        peak = max(own, key=lambda r: r.rank)
+        flat = [r for r in own if r.rank >= (1.0 - SOURCE_FLAT) * peak.rank and same_layout(r, peak)]
+        repeats = [r for r in flat if r.significance >= FLAT_SIGNIFICANCE]
+        picks.append(max(repeats or flat, key=lambda r: r.share))
+    top = max(ranked, key=lambda r: r.rank)
+    same = [r for r in picks if same_layout(r, top) and r.rank >= margin * top.rank]
+    return min(same, key=lambda r: (r.share, -r.rank)) if same else top
 
 
 def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
@@ -186,7 +198,7 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
     groups = structure_sources(albedo, height, normal, cfg)
     cands: list[dict] = []
     for group in ("relief", "albedo"):
-        ranked: dict[bool, list[tuple[float, str, float, str, float, float]]] = {True: [], False: []}
+        ranked: dict[bool, list[RankedCut]] = {True: [], False: []}
         for name, src in groups[group].items():
             small, k = _small(src, cfg.analysis_size)
             med = max(1, int(round(cfg.median * k))) if cfg.median > 1 else 0
@@ -203,15 +215,15 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
                               "period_full": None if lat.period is None else round(lat.period / k, 2)})
                 if lat.kind == "none" or kept < cfg.min_kept:
                     continue
-                ranked[name.startswith(ONE_SIDED)].append((layout_rank(lat), name, share, lat.kind, lat.period / k,
-                                                            float(lat.significance)))
+                ranked[name.startswith(ONE_SIDED)].append(RankedCut(layout_rank(lat), name, share, lat.kind,
+                                                                     lat.period / k, float(lat.significance)))
         best = _thinnest(ranked[False], cfg.thin_margin)
         one_sided = _thinnest(ranked[True], cfg.thin_margin)
         if one_sided is not None and best is not None and \
-                max(r[0] for r in ranked[True]) > ONE_SIDED_MARGIN * max(r[0] for r in ranked[False]):
+                max(r.rank for r in ranked[True]) > ONE_SIDED_MARGIN * max(r.rank for r in ranked[False]):
             best = one_sided
         if best is not None:
-            _, name, share = best[:3]
+            name, share = best.source, best.share
             mask = _cut(groups[group][name], share, cfg.median)
             lat = analyse_lattice(mask)
             if lat.kind == "none":
