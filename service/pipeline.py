@@ -281,6 +281,15 @@ def fit_region(tree, parent, node) -> np.ndarray | None:
     return None if region.all() else region
 
 
+def structure_cell_length(tree: MaskNode, node: MaskNode) -> float | None:
+    """The cells' length along the rows that the structural first split measured in the relief
+    (workers.structure.cells_along_rows; working-size px), for that split's network (the root's first child)."""
+    if not tree.children or tree.children[0].id != node.id:
+        return None
+    length = (tree.meta.get("structure") or {}).get("cell_length")
+    return float(length) if length else None
+
+
 def stage_masks(call: StageCall, holder: Any = None) -> dict:
     """Proceduralise one matting child's mask by a PPTBF fit (query + optimise) inside what its parent and its
     earlier siblings left (:func:`fit_region`); write JSON."""
@@ -304,7 +313,8 @@ def stage_masks(call: StageCall, holder: Any = None) -> dict:
     if parent.id != tree.id and cfg.incomplete == "inpaint":
         target, extra = _inpainted_target(folder, parent, node)
         valid = None
-    fit = fitter.fit(target, valid=valid, config=cfg, seed=int(call.spec.seed))
+    fit = fitter.fit(target, valid=valid, config=cfg, seed=int(call.spec.seed),
+                     cell_length=structure_cell_length(tree, node))
     doc = {"node": node_id, "parent": parent.id, "kind": "pptbf", "fit": _to_jsonable(fit),
            "node_params": fit.node_params(int(node.mask.shape[1])), **extra}
     path = write_json(folder.mask_fit(node_id), doc)

@@ -385,3 +385,25 @@ def test_thin_seams_come_back_as_courses(bundled_index):
     print(f"white {out.mean():.3f} (target {m.mean():.3f}); best rows {rows[-4:]}, best columns {cols[-3:]}")
     assert rows[-3] >= 0.9 and cols[-1] < 0.8
     assert abs(out.mean() - m.mean()) <= 0.01
+
+
+def _key_run_length(params, size: int = 256) -> float:
+    """Mean length (px) of the runs of one cell key along the x axis: the cells' length along horizontal rows."""
+    _, keys = pp.evaluate(params, size, size, cells=True)
+    return keys.size / max(1, int((keys[:, 1:] != keys[:, :-1]).sum()))
+
+
+def test_rows_without_cell_ends_keep_the_given_cell_length(bundled_index):
+    """A network of horizontal lines alone (2 px every 16 px) says nothing of where the cells end, and the loss
+    prefers long cells (fewer ends to miss: 41.7 px without the given length). Given the cells' length (as the
+    relief's 2-D cut measures it), the fit keeps it in the starts, the window stage and the polish: its cells are
+    12 px long within 20 % (10.0 px by the cell keys). The window stage's aspect line had stretched the roof's
+    given 11 px cells to 12.7 px."""
+    y = np.arange(256)[:, None] % 16
+    target = np.broadcast_to(y < 2, (256, 256)).copy()
+    cfg = MaskFitConfig(max_evals=90, time_budget_s=40)
+    fit = fit_pptbf_mask(target, bundled_index, config=cfg, cell_length=12.0)
+    assert fit.meta["method"] == "lattice" and fit.meta["lattice"]["cell_length_fixed"]
+    got = _key_run_length(fit.params)
+    print(f"given 12 px: tiling {fit.params[1]:.0f}, cells {got:.1f} px ({fit.meta['chosen']})")
+    assert abs(got - 12.0) <= 0.20 * 12.0

@@ -14,7 +14,7 @@ from workers import lattice as L
 from workers.decompose import decompose
 from workers.height import height_to_normal
 from workers.instances import find_instances
-from workers.structure import find_structure
+from workers.structure import TwoDCut, cells_along_rows, find_structure
 
 N = 192
 
@@ -333,3 +333,42 @@ def test_real_castle_network_splits_into_light_mortar_and_dark_edges(materials_d
     (dark, _), (light, light_share) = sorted(layers)
     assert sep >= 2.0 and light >= 2 * dark and 0.15 <= light_share <= 0.5
     assert kinds["metal_plate_02"][1] == [] and kinds["roof_slates_02"][1] == []
+
+
+def _lat(kind, vectors, significance=3.0, row_vector=None, row_spacing=None):
+    return L.Lattice(kind=kind, vectors=vectors, regularity=0.05, significance=significance, row_vector=row_vector,
+                     row_spacing=row_spacing)
+
+
+def test_cells_along_rows_from_a_two_sided_2d_cut_with_the_same_rows():
+    """A rows split takes its cells' length from a 2-D cut whose rows are its rows (spacing within 10 %, direction
+    within 5 degrees), two-sided sources before one-sided ones, the most significant first; a 2-D lattice with
+    other rows, turned rows, or a length far from the spacing gives none."""
+    rows = _lat("rows", [(0.0, 20.0)])
+    cuts = [TwoDCut("slopey+", 0.15, _lat("2d", [(26.0, 0.0), (-8.0, 20.0)], 3.5, (26.0, 0.0), 19.8), 1.0),
+            TwoDCut("tilt", 0.15, _lat("2d", [(11.0, 0.0), (-4.0, 10.0)], 2.7, (11.0, 0.0), 10.0), 0.5),
+            TwoDCut("tilt", 0.25, _lat("2d", [(40.0, 0.0), (0.0, 30.0)], 4.0, (40.0, 0.0), 30.0), 1.0),
+            TwoDCut("groove3", 0.15, _lat("2d", [(20.0, 20.0), (0.0, 20.0)], 5.0, (20.0, 20.0), 20.0), 1.0)]
+    assert cells_along_rows(rows, cuts) == (22.0, "tilt@0.15")          # analysis at half size: 11 px -> 22 px
+    assert cells_along_rows(rows, cuts[:1]) == (26.0, "slopey+@0.15")   # one-sided only when nothing else
+    assert cells_along_rows(rows, cuts[2:]) is None                     # other rows; rows turned by 45 degrees
+    assert cells_along_rows(rows, [TwoDCut("tilt", 0.1, _lat("2d", [(5.0, 0.0), (0.0, 20.0)], 4.0, (5.0, 0.0),
+                                                                20.0), 1.0)]) is None   # a harmonic: 0.25 rows
+    assert cells_along_rows(_lat("2d", [(20.0, 0.0), (0.0, 20.0)]), cuts) is None
+
+
+def test_real_roof_rows_take_the_slates_length_from_the_tilt(materials_dir):
+    """roof_slates_02 at the README job's 256 px: the split (one-sided slope, rows) shows no slate ends; the
+    normals' tilt cut has a 2-D lattice on the same rows whose period along them is the slates' length, about
+    10 px here (the input's slates are about 20 px at 512 px: 15-25 px by eye); the decomposition records it."""
+    from workers.maps import load_material
+
+    f = real_material_files("roof_slates_02")
+    m = load_material(f["albedo"], f["normal"], f["roughness"], roughness_channel=f["roughness_channel"],
+                      working_size=256, normal_convention="auto")
+    split = find_structure(m.albedo, m.height, m.normal)
+    print(f"roof at 256: {split.source}, rows {split.lattice.period:.2f} px, cells {split.cell_length} px "
+          f"({split.cell_source})")
+    assert split.lattice.kind == "rows" and split.cell_source.startswith("tilt@")
+    assert 8.0 <= split.cell_length <= 12.5
+    assert split.describe()["cell_length"] == split.cell_length

@@ -42,12 +42,11 @@ class MaskFitter:
             logger.info("PPTBF index loaded in %.2f s", self.load_seconds)
         return self._index
 
-    def fit(self, mask: np.ndarray, valid: np.ndarray | None = None, config: Any = None, seed: int = 0) -> Any:
+    def fit(self, mask: np.ndarray, valid: np.ndarray | None = None, config: Any = None, seed: int = 0,
+            cell_length: float | None = None) -> Any:
         """``workers.masks.fit_pptbf_mask`` with the held index."""
         self.fits += 1
-        if config is None:
-            return fit_pptbf_mask(mask, self.index, valid=valid, seed=seed)
-        return fit_pptbf_mask(mask, self.index, valid=valid, config=config, seed=seed)
+        return fit_pptbf_mask(mask, self.index, valid=valid, config=config, seed=seed, cell_length=cell_length)
 
 
 class Recomposer:

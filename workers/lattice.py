@@ -81,6 +81,8 @@ class Lattice:
     white_fraction: float = 0.0
     row_height: float | None = None             # rows: mean distance between network lines across the rows (px)
     cell_length: float | None = None            # rows: mean distance between the cuts along the rows (px)
+    cell_length_fixed: bool = False             # rows: cell_length was measured outside the mask, whose rows show no
+    #                                             cell ends (the relief's 2-D cut): the one cell aspect a fit tries
 
     @property
     def period(self) -> float | None:
@@ -789,6 +791,8 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         r = float(np.linalg.norm(v))
         aspects = ROW_ASPECTS if lat.row_vector is None else \
             (float(np.linalg.norm(lat.row_vector)) / r,) + ROW_ASPECTS
+        if lat.cell_length_fixed and lat.cell_length:
+            aspects = ()                           # the cells' length is known: no other aspect
         h = lat.row_height
         if h and abs(h - r) > ROW_HEIGHT_GAP * r:      # rows of random heights: the ashlars at the mean height
             own = (lat.cell_length / h,) if lat.cell_length else ()    # the measured cells first

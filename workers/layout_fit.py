@@ -598,10 +598,12 @@ class _Window:
 def scaled_entries(lat: Lattice) -> tuple[str, ...]:
     """The layout entries the window stage scales by ``_factor_line`` (the rest of the layout stays as the
     lattice put it): on rows, the aspect ratio (cells' length along them), and on rows of random heights
-    (``random_heights``) the resolution (their mean height) too."""
+    (``random_heights``) the resolution (their mean height) too; the aspect ratio not when the cells' length is
+    given (``Lattice.cell_length_fixed``)."""
     if lat.kind != "rows":
         return ()
-    return ("aspect_ratio", "resolution") if random_heights(lat) else ("aspect_ratio",)
+    out = ("aspect_ratio", "resolution") if random_heights(lat) else ("aspect_ratio",)
+    return tuple(e for e in out if e not in FIXED_CELLS) if lat.cell_length_fixed else out
 
 
 def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, width: int, max_evals: int,
@@ -653,14 +655,20 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     return _Window(b, c, b.evaluations + counted, history + b.history, search_evals if crop is not None else 0)
 
 
+#: entries the polish keeps when the cells' length along rows is given (Lattice.cell_length_fixed): a network of
+#: rows alone scores longer cells better (fewer ends to miss), which is no information on the cells
+FIXED_CELLS = ("aspect_ratio",)
+
+
 #: cell-shape lines the polish runs first at full size: the candidate it starts from may come from a database
 #: entry's look or the crop's line search, whose larp a local search with small steps cannot move far
 POLISH_LINES = ("window_larp", "window_smoothness")
 
 
 def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadline: float, cfg: MaskFitConfig,
-            seed: int) -> Budget:
-    """From the best candidate so far: the POLISH_LINES at full size, then everything free with small steps."""
+            seed: int, frozen: tuple[str, ...] = ()) -> Budget:
+    """From the best candidate so far: the POLISH_LINES at full size, then everything but ``frozen`` free with small
+    steps."""
     own, compl, x0 = best[0], best[1], best[2]
     b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
     b.seed(x0, own)
@@ -670,7 +678,7 @@ def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadlin
     except BudgetExhausted:
         return b
     optimise(b.loss, x0, width, OptSettings(rounds=2, max_evals=b.max_evals, algorithm=cfg.algorithm, step=0.03,
-                                            seed=seed + 1), budget=b)
+                                            seed=seed + 1, frozen=frozen), budget=b)
     return b
 
 
@@ -729,8 +737,10 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                 "fit", lat_best[3], lat_best[0], w_evals, win.search_evals, b1.best_loss,
                 " (other polarity)" if w_compl != lat_best[1] else "", time.perf_counter() - t0)
     cands.append((b1.best_loss, w_compl, b1.best_params, "window", True))
+    if lat.cell_length_fixed:   # the mask cannot tell the cells' length: only layouts placed with the given one
+        cands = [c for c in cands if c[3] != "database"]
     best = min(cands, key=lambda c: c[0])
-    b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed)
+    b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed, FIXED_CELLS if lat.cell_length_fixed else ())
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, "polish", True))
     cands.sort(key=lambda c: c[0])

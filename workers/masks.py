@@ -368,17 +368,20 @@ def best_shift_iou(a: np.ndarray, b: np.ndarray, max_shift: int | None = None) -
 # ----------------------------------------------------------------------------- fitting
 
 
-def fit_pptbf_mask(mask, index, valid=None, config: MaskFitConfig | None = None, seed: int | None = None) -> MaskFit:
+def fit_pptbf_mask(mask, index, valid=None, config: MaskFitConfig | None = None, seed: int | None = None,
+                   cell_length: float | None = None) -> MaskFit:
     """Fit a PPTBF to a binary mask (HxW): query mask and complement, re-rank both top-k lists with the target's
     white fraction at our realisation (the better one fixes the polarity), then optimise; best ever kept.
 
     `valid` (HxW bool) restricts the loss to the parent's pixels for incomplete sub-layer masks.
     `seed` overrides config.seed (the optimiser's random sweep order).
+    `cell_length` (px at the mask's size): the cells' length along the rows when the mask is a network of rows
+    alone, measured elsewhere (workers.structure.cells_along_rows); a lattice fit of rows keeps it.
     """
     cfg = config or MaskFitConfig()
     seed = cfg.seed if seed is None else int(seed)
     with torch_threads(cfg.torch_threads):
-        return _fit(mask, index, valid, cfg, seed)
+        return _fit(mask, index, valid, cfg, seed, cell_length)
 
 
 def _prepare_target(mask, valid, fit_width: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -457,9 +460,11 @@ def widen_network(mask: np.ndarray, share: float) -> tuple[np.ndarray, int] | No
     return None
 
 
-def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit | None:
+def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int,
+                  cell_length: float | None = None) -> MaskFit | None:
     """The lattice-first fit when the mask (fully known or nearly) has a lattice, else None. A thin network is
-    fitted widened and thresholded back to its own share (widen_network)."""
+    fitted widened and thresholded back to its own share (widen_network). A given ``cell_length`` replaces the
+    one a rows lattice reads off the mask (Lattice.cell_length_fixed)."""
     from .lattice import analyse_lattice
     from .layout_fit import fit_layout
 
@@ -473,6 +478,9 @@ def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit 
     if lat.kind == "none":
         logger.info("mask has no lattice (regularity %.2f): query-and-optimise fit", lat.regularity)
         return None
+    if lat.kind == "rows" and cell_length:
+        lat.cell_length, lat.cell_length_fixed = float(cell_length) * target.shape[1] / full.shape[1], True
+        logger.info("mask: rows with cells %.1f px long (given)", lat.cell_length)
     thin = cfg.thin_share > 0 and valid is None and lat.kind == "2d" and \
         min(full.mean(), 1.0 - full.mean()) < cfg.thin_share
     widened = widen_network(full, WIDE_SHARE) if thin else None
@@ -495,10 +503,10 @@ def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit 
     return fit
 
 
-def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int) -> MaskFit:
+def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int, cell_length: float | None = None) -> MaskFit:
     """fit_pptbf_mask without the thread setting."""
     if cfg.lattice:
-        fit = _layout_first(mask, index, valid, cfg, seed)
+        fit = _layout_first(mask, index, valid, cfg, seed, cell_length)
         if fit is not None:
             return fit
     t0 = time.perf_counter()

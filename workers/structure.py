@@ -58,12 +58,15 @@ class StructureSplit:
     share: float
     lattice: Lattice
     candidates: list[dict] = field(default_factory=list)
+    cell_length: float | None = None      # rows: the cells' length along the rows (px), from another cut
+    cell_source: str | None = None        # that cut ("tilt@0.15")
 
     def describe(self) -> dict:
         """JSON-able summary (no pixels)."""
         return {"source": self.source, "share": self.share, "coverage": float(self.mask.mean()),
                 "lattice": {"kind": self.lattice.kind, "period": self.lattice.period,
                             "regularity": self.lattice.regularity, "significance": self.lattice.significance},
+                "cell_length": self.cell_length, "cell_source": self.cell_source,
                 "candidates": self.candidates}
 
 
@@ -191,6 +194,54 @@ def _thinnest(ranked: list[RankedCut], margin: float) -> RankedCut | None:
     return min(same, key=lambda r: (r.share, -r.rank)) if same else top
 
 
+#: a 2-D cut's rows are the split's rows when their spacing is within SAME_PERIOD and their direction within this
+#: many degrees
+ROW_ANGLE_DEG = 5.0
+#: a cell length read off a 2-D cut lies within these multiples of the rows' spacing (else it is a harmonic)
+CELL_RANGE = (0.5, 4.0)
+
+
+class TwoDCut(NamedTuple):
+    """A candidate cut with a significant 2-D lattice, kept for the cells' length of a rows split."""
+
+    source: str
+    share: float
+    lattice: Lattice        # as analysed (at the analysis size)
+    factor: float           # analysis size / full size
+
+
+def cells_along_rows(rows: Lattice, cuts: list[TwoDCut]) -> tuple[float, str] | None:
+    """The cells' length (full-size px) along a rows split's rows, and the cut it comes from, or None.
+
+    A network of rows alone (roof_slates_02's lower slate edges, a one-sided slope cut) says nothing of where the
+    cells end: a fit of it chose slates 2.4 times as long as the input's (41 px against about 20 at 512 px),
+    which showed as wide patches of one tone. Where another cut of the relief has a significant 2-D lattice with
+    the same rows (the normals' tilt, which holds the slate ends between the edges: vectors (22, 0) and (-8, 20)
+    on 19.6 px rows), its period along the rows is the cells' length: of such cuts, the most significant one of a
+    two-sided source, else of a one-sided one (a one-sided slope holds only the steps facing its way: on the roof
+    its 2-D cut reads 26 px cells where the tilt reads 22 px at 512 px and 20 px at 256 px, and the input's
+    slates are about 20 px)."""
+    if rows.kind != "rows" or not rows.vectors:
+        return None
+    across = np.array(rows.vectors[0], dtype=np.float64)
+    spacing = float(np.linalg.norm(across))
+    best = None
+    for c in cuts:
+        lat = c.lattice
+        if lat.row_vector is None or not lat.row_spacing:
+            continue
+        along = np.array(lat.row_vector, dtype=np.float64) / c.factor
+        length = float(np.linalg.norm(along))
+        cos = abs(float(along @ across)) / max(length * spacing, 1e-12)
+        if abs(lat.row_spacing / c.factor - spacing) > SAME_PERIOD * spacing or \
+                cos > np.sin(np.radians(ROW_ANGLE_DEG)) or not CELL_RANGE[0] <= length / spacing <= CELL_RANGE[1]:
+            continue
+        key = (not c.source.startswith(ONE_SIDED), float(lat.significance))
+        if best is None or key > best[0]:
+            best = (key, length, f"{c.source}@{c.share:g}")
+    return None if best is None else (best[1], best[2])
+
+
 def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
                    config: StructureConfig | None = None) -> StructureSplit | None:
     """The structural first split (see the module doc), or None when neither relief nor albedo has a layout."""
@@ -199,6 +250,7 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
     cands: list[dict] = []
     for group in ("relief", "albedo"):
         ranked: dict[bool, list[RankedCut]] = {True: [], False: []}
+        two_d: list[TwoDCut] = []
         for name, src in groups[group].items():
             small, k = _small(src, cfg.analysis_size)
             med = max(1, int(round(cfg.median * k))) if cfg.median > 1 else 0
@@ -215,6 +267,8 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
                               "period_full": None if lat.period is None else round(lat.period / k, 2)})
                 if lat.kind == "none" or kept < cfg.min_kept:
                     continue
+                if lat.kind == "2d" and lat.significance >= FLAT_SIGNIFICANCE:
+                    two_d.append(TwoDCut(name, share, lat, k))
                 ranked[name.startswith(ONE_SIDED)].append(RankedCut(layout_rank(lat), name, share, lat.kind,
                                                                      lat.period / k, float(lat.significance)))
         best = _thinnest(ranked[False], cfg.thin_margin)
@@ -229,9 +283,12 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
             if lat.kind == "none":
                 logger.info("structure: %s at %.2f lost its lattice at full size; next source group", name, share)
                 continue
-            logger.info("structure: first split from %s (%s) at share %.2f: %s lattice, period %.1f px",
-                        group, name, share, lat.kind, lat.period or 0.0)
+            cells = cells_along_rows(lat, two_d)
+            logger.info("structure: first split from %s (%s) at share %.2f: %s lattice, period %.1f px%s",
+                        group, name, share, lat.kind, lat.period or 0.0,
+                        f", cells {cells[0]:.1f} px long ({cells[1]})" if cells else "")
             return StructureSplit(mask=mask, source=f"{group}:{name}", share=float(share), lattice=lat,
-                                  candidates=cands)
+                                  candidates=cands, cell_length=cells[0] if cells else None,
+                                  cell_source=cells[1] if cells else None)
     logger.info("structure: no layout in the relief or the albedo; colour matting")
     return None
