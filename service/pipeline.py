@@ -281,18 +281,10 @@ def fit_region(tree, parent, node) -> np.ndarray | None:
     return None if region.all() else region
 
 
-def structure_cell_length(tree: MaskNode, node: MaskNode) -> float | None:
-    """The cells' length along the rows that the structural first split measured in the relief
-    (workers.structure.cells_along_rows; working-size px), for that split's network (the root's first child)."""
-    if not tree.children or tree.children[0].id != node.id:
-        return None
-    length = (tree.meta.get("structure") or {}).get("cell_length")
-    return float(length) if length else None
-
-
 def stage_masks(call: StageCall, holder: Any = None) -> dict:
     """Proceduralise one matting child's mask by a PPTBF fit (query + optimise) inside what its parent and its
     earlier siblings left (:func:`fit_region`); write JSON."""
+    from workers.decompose import structure_cell_length
     from workers.masks import MaskFitConfig
 
     node_id = call.item

@@ -345,15 +345,15 @@ def test_cells_along_rows_from_a_two_sided_2d_cut_with_the_same_rows():
     within 5 degrees), two-sided sources before one-sided ones, the most significant first; a 2-D lattice with
     other rows, turned rows, or a length far from the spacing gives none."""
     rows = _lat("rows", [(0.0, 20.0)])
-    cuts = [TwoDCut("slopey+", 0.15, _lat("2d", [(26.0, 0.0), (-8.0, 20.0)], 3.5, (26.0, 0.0), 19.8), 1.0),
-            TwoDCut("tilt", 0.15, _lat("2d", [(11.0, 0.0), (-4.0, 10.0)], 2.7, (11.0, 0.0), 10.0), 0.5),
-            TwoDCut("tilt", 0.25, _lat("2d", [(40.0, 0.0), (0.0, 30.0)], 4.0, (40.0, 0.0), 30.0), 1.0),
-            TwoDCut("groove3", 0.15, _lat("2d", [(20.0, 20.0), (0.0, 20.0)], 5.0, (20.0, 20.0), 20.0), 1.0)]
-    assert cells_along_rows(rows, cuts) == (22.0, "tilt@0.15")          # analysis at half size: 11 px -> 22 px
+    cuts = [TwoDCut("slopey+", 0.15, _lat("2d", [(26.0, 0.0), (-8.0, 20.0)], 3.5, (26.0, 0.0), 19.8)),
+            TwoDCut("tilt", 0.15, _lat("2d", [(11.0, 0.0), (-4.0, 10.0)], 2.7, (11.0, 0.0), 10.0).scaled(2.0)),
+            TwoDCut("tilt", 0.25, _lat("2d", [(40.0, 0.0), (0.0, 30.0)], 4.0, (40.0, 0.0), 30.0)),
+            TwoDCut("groove3", 0.15, _lat("2d", [(20.0, 20.0), (0.0, 20.0)], 5.0, (20.0, 20.0), 20.0))]
+    assert cells_along_rows(rows, cuts) == (22.0, "tilt@0.15")          # analysed at half size: 11 px -> 22 px
     assert cells_along_rows(rows, cuts[:1]) == (26.0, "slopey+@0.15")   # one-sided only when nothing else
     assert cells_along_rows(rows, cuts[2:]) is None                     # other rows; rows turned by 45 degrees
     assert cells_along_rows(rows, [TwoDCut("tilt", 0.1, _lat("2d", [(5.0, 0.0), (0.0, 20.0)], 4.0, (5.0, 0.0),
-                                                                20.0), 1.0)]) is None   # a harmonic: 0.25 rows
+                                                                20.0))]) is None   # a harmonic: 0.25 rows
     assert cells_along_rows(_lat("2d", [(20.0, 0.0), (0.0, 20.0)]), cuts) is None
 
 

@@ -340,6 +340,15 @@ def _structure_first(root: MaskNode, spec: Mapping, split: Any, fm: FeatureMaps,
         _cell_kinds(root.children[1], fm, split.lattice.period, seed)
 
 
+def structure_cell_length(root: MaskNode, node: MaskNode) -> float | None:
+    """The cells' length along the rows (px) that the structural first split measured in the relief
+    (workers.structure.cells_along_rows), for that split's network (root.0, see _structure_first); else None."""
+    if not root.children or root.children[0].id != node.id:
+        return None
+    length = (root.meta.get("structure") or {}).get("cell_length")
+    return float(length) if length else None
+
+
 def decompose(maps: Any, spec: Mapping | None = None, seed: int = 0) -> MaskNode:
     """Decompose a material into a mask tree.
 

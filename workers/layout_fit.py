@@ -603,7 +603,7 @@ def scaled_entries(lat: Lattice) -> tuple[str, ...]:
     if lat.kind != "rows":
         return ()
     out = ("aspect_ratio", "resolution") if random_heights(lat) else ("aspect_ratio",)
-    return tuple(e for e in out if e not in FIXED_CELLS) if lat.cell_length_fixed else out
+    return tuple(e for e in out if e not in fixed_cells(lat))
 
 
 def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, width: int, max_evals: int,
@@ -655,9 +655,14 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     return _Window(b, c, b.evaluations + counted, history + b.history, search_evals if crop is not None else 0)
 
 
-#: entries the polish keeps when the cells' length along rows is given (Lattice.cell_length_fixed): a network of
-#: rows alone scores longer cells better (fewer ends to miss), which is no information on the cells
+#: entries the window stage and the polish keep when the cells' length along rows is given (cell_length_fixed): a
+#: network of rows alone scores longer cells better (fewer ends to miss), which is no information on the cells
 FIXED_CELLS = ("aspect_ratio",)
+
+
+def fixed_cells(lat: Lattice) -> tuple[str, ...]:
+    """The entries no stage of a fit moves on ``lat``: FIXED_CELLS when the cells' length is given, else none."""
+    return FIXED_CELLS if lat.cell_length_fixed else ()
 
 
 #: cell-shape lines the polish runs first at full size: the candidate it starts from may come from a database
@@ -740,7 +745,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     if lat.cell_length_fixed:   # the mask cannot tell the cells' length: only layouts placed with the given one
         cands = [c for c in cands if c[3] != "database"]
     best = min(cands, key=lambda c: c[0])
-    b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed, FIXED_CELLS if lat.cell_length_fixed else ())
+    b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed, fixed_cells(lat))
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, "polish", True))
     cands.sort(key=lambda c: c[0])

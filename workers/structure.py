@@ -206,8 +206,7 @@ class TwoDCut(NamedTuple):
 
     source: str
     share: float
-    lattice: Lattice        # as analysed (at the analysis size)
-    factor: float           # analysis size / full size
+    lattice: Lattice        # at full size
 
 
 def cells_along_rows(rows: Lattice, cuts: list[TwoDCut]) -> tuple[float, str] | None:
@@ -230,10 +229,10 @@ def cells_along_rows(rows: Lattice, cuts: list[TwoDCut]) -> tuple[float, str] | 
         lat = c.lattice
         if lat.row_vector is None or not lat.row_spacing:
             continue
-        along = np.array(lat.row_vector, dtype=np.float64) / c.factor
+        along = np.array(lat.row_vector, dtype=np.float64)
         length = float(np.linalg.norm(along))
         cos = abs(float(along @ across)) / max(length * spacing, 1e-12)
-        if abs(lat.row_spacing / c.factor - spacing) > SAME_PERIOD * spacing or \
+        if abs(lat.row_spacing - spacing) > SAME_PERIOD * spacing or \
                 cos > np.sin(np.radians(ROW_ANGLE_DEG)) or not CELL_RANGE[0] <= length / spacing <= CELL_RANGE[1]:
             continue
         key = (not c.source.startswith(ONE_SIDED), float(lat.significance))
@@ -268,7 +267,7 @@ def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal:
                 if lat.kind == "none" or kept < cfg.min_kept:
                     continue
                 if lat.kind == "2d" and lat.significance >= FLAT_SIGNIFICANCE:
-                    two_d.append(TwoDCut(name, share, lat, k))
+                    two_d.append(TwoDCut(name, share, lat.scaled(1.0 / k)))
                 ranked[name.startswith(ONE_SIDED)].append(RankedCut(layout_rank(lat), name, share, lat.kind,
                                                                      lat.period / k, float(lat.significance)))
         best = _thinnest(ranked[False], cfg.thin_margin)
