@@ -12,7 +12,11 @@ machine with fewer cores than N x CPUs they share the cores, so read the 4-node 
 The table: wall seconds, materials/hour, speed-up over the first row, the machine's own ceiling for that many
 workers (``ceiling``: n copies of one single-threaded kernel of the pipeline's kind, torch convolutions and numpy
 FFTs, run at once without Ray, n x the time of one copy alone over the time of the n; a machine whose cores slow
-each other down cannot give any scheduler more), and per stage the share of its items' time spent waiting for a
+each other down cannot give any scheduler more), the same read off the job's own items (``items' ceiling``: the
+CPUs over the first row's, times its items' summed run seconds over this row's: what the speed-up would be if
+the workers were always full; the speed-up over it is the scheduler's share), how full the workers were
+(``busy %``: the items' summed seconds over span x CPUs; ``head`` / ``tail``: seconds at the start and the end
+with fewer items running than CPUs), and per stage the share of its items' time spent waiting for a
 slot (``wait / (wait + run)`` from the job database: a task waiting for a CPU, a mask
 or recomposition call waiting in the driver's queue for an actor) and the CPU seconds the worker process spent
 over the items' run seconds (``cpu %``: above 100 a stage runs more threads than it reserved, well under 100 it
@@ -94,6 +98,26 @@ def _summarise(store, job: str) -> tuple[dict, dict, dict]:
     return run, wait, cpu
 
 
+def timeline(store, job: str, cpus: int) -> dict:
+    """How full the workers were, from the items' start and end times: ``busy`` the items' summed seconds over
+    span x CPUs, ``head`` and ``tail`` the seconds at the start and the end of the span when fewer items ran than
+    there are CPUs (filling up, and the last items running alone)."""
+    spans = [(r["started"], r["finished"]) for r in store.items(job)
+             if r["status"] == "done" and r["started"] and r["finished"]]
+    if not spans:
+        return {"busy": 0.0, "head": 0.0, "tail": 0.0}
+    t0, t1 = min(s for s, _ in spans), max(f for _, f in spans)
+    events = sorted([(s, 1) for s, _ in spans] + [(f, -1) for _, f in spans])
+    running, full = 0, []
+    for t, step in events:
+        running += step
+        full.append((t, running >= cpus))
+    first = next((t for t, f in full if f), t1)
+    last = max((t for (t, f), (_, g) in zip(full, full[:1] + full) if g and not f), default=t1)
+    busy = sum(f - s for s, f in spans) / max((t1 - t0) * cpus, 1e-9)
+    return {"busy": busy, "head": first - t0, "tail": t1 - last}
+
+
 def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> dict:
     """Run the job on a fresh cluster of ``n_nodes`` worker nodes; returns timing, counts and waits."""
     import ray
@@ -106,7 +130,8 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     man = validate(doc, root=folder)
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
+    # the head hosts only the driver; no dashboard: on one machine its processes would take the workers' cores
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
     try:
         nodes = [cluster.add_node(num_cpus=cpus_per_node) for _ in range(n_nodes)]
         ray.init(address=cluster.address, logging_level="ERROR",
@@ -118,6 +143,7 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
             report = Scheduler(man, store=store, progress=False).run()
             seconds = time.perf_counter() - t0
             run, wait, cpu = _summarise(store, man.name)
+            fill = timeline(store, man.name, n_nodes * cpus_per_node)
             devices = {m["name"]: m["device"] for m in store.materials(man.name)}
     finally:
         ray.shutdown()
@@ -125,7 +151,7 @@ def run_on_nodes(n_nodes: int, cpus_per_node: int, doc: dict, folder: Path) -> d
     done = sum(s == "done" for s in report.materials.values())
     return {"nodes": n_nodes, "cpus": n_nodes * cpus_per_node, "seconds": seconds, "done": done,
             "failed": len(report.materials) - done, "per_hour": done / seconds * 3600.0, "items": report.executed,
-            "run": run, "wait": wait, "cpu": cpu, "errors": report.errors, "devices": devices}
+            "run": run, "wait": wait, "cpu": cpu, "fill": fill, "errors": report.errors, "devices": devices}
 
 
 def _kernel(_: int = 0) -> float:
@@ -168,22 +194,27 @@ def throughput(args: argparse.Namespace, dec: str) -> int:
     print(f"{args.materials} materials, working size {args.working_size}, decompose {dec}, recompose "
           f"{args.iterations} iterations on CPU, {args.cpus_per_node} CPU per node, head 0 CPU; "
           f"machine: {os.cpu_count()} cores")
-    head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "ceiling", "items"] + \
+    head = ["nodes", "CPUs", "wall s", "done", "failed", "materials/h", "speed-up", "ceiling", "items' ceiling",
+            "items", "busy % / head s / tail s"] + \
            [f"{s} run s / wait % / cpu %" for s in stages] + ["load avg (1/5/15 min) before -> after"]
     print(" | ".join(head))
     print(" | ".join("---" for _ in head), flush=True)
     failed = 0
-    base = None
+    base = base_items = None
     with tempfile.TemporaryDirectory(prefix="bench-throughput-") as tmp:
         for n in args.nodes:   # each row printed as soon as it is measured
             ceiling = machine_ceiling(n * args.cpus_per_node)
             before = _load()
             r = run_on_nodes(n, args.cpus_per_node, doc, Path(tmp) / f"nodes{n}")
             base = base or r["seconds"]
+            item_s = sum(r["run"].values())
+            base_items = base_items or (item_s, r["cpus"])
+            items_ceiling = r["cpus"] / base_items[1] * base_items[0] / item_s
             for name, err in r["errors"].items():
                 print(f"  [{n} nodes] {name} failed: {err}", file=sys.stderr)
             cells = [r["nodes"], r["cpus"], f"{r['seconds']:.1f}", r["done"], r["failed"], f"{r['per_hour']:.0f}",
-                     f"{base / r['seconds']:.2f}x", f"{ceiling:.2f}x", r["items"]]
+                     f"{base / r['seconds']:.2f}x", f"{ceiling:.2f}x", f"{items_ceiling:.2f}x", r["items"],
+                     f"{100 * r['fill']['busy']:.0f} / {r['fill']['head']:.1f} / {r['fill']['tail']:.1f}"]
             for s in stages:
                 run, wait = r["run"].get(s, 0.0), r["wait"].get(s, 0.0)
                 cpu = r["cpu"].get(s, 0.0)

@@ -18,8 +18,9 @@ recomposition actor reserves ``job.recompose_cpus`` CPUs and runs that many thre
 and 1 CPU. Actor stages queue in the driver and go to an idle actor of their pool, one call per actor at a time,
 so recomposition of one material overlaps mask fitting of others, bounded by the pools' sizes (GPUs the cluster
 has or can reach; CPUs / reservation), and the time an item waits for a slot is measured (``stages.wait``).
-Pools grow with their queue up to that bound, and an idle actor whose queue is empty is retired when the work
-in flight needs its CPUs, so idle actors never starve the tasks they wait for on a small cluster.
+Pools grow with their queue up to that bound, first by taking over idle actors of the same shape from another
+pool (an actor runs mask fits and recompositions alike), and an idle actor whose queue is empty is retired when the
+work in flight needs its CPUs, so idle actors never starve the tasks they wait for on a small cluster.
 
 GPU actors are requested at job start when some material routes to them, so a GPU group that scales from zero
 sees the demand (pending actors) while the first stages run. When no GPU actor has started after
@@ -119,6 +120,7 @@ class _Slot:
     node: str = ""
     device: str = "cpu"
     note: str | None = None
+    options: dict = field(default_factory=dict)   # the Ray options it was started with (its shape)
 
 
 @dataclass
@@ -194,26 +196,37 @@ def run_stage_task(call: StageCall) -> dict:
 
 
 class _StageActor:
-    """Ray actor body: holds a MaskFitter (PPTBF index loaded once) or a Recomposer and runs stage calls.
+    """Ray actor body: runs mask fits (a MaskFitter, PPTBF index loaded on the first fit) and recompositions (a
+    Recomposer), whichever its calls ask for, so an idle actor of one CPU pool can serve another of the same shape.
 
-    Its torch threads follow its CPU reservation; a recomposer placed for CUDA checks that torch sees a device
-    and otherwise runs on CPU (logged, and noted in each result's info)."""
+    Its torch threads follow its CPU reservation; an actor placed for CUDA checks that torch sees a device and
+    otherwise runs on CPU (logged, and noted in each recomposition's info)."""
 
-    def __init__(self, kind: Placement, device: str = "cpu", database: str | None = None, threads: int = 1):
-        from workers.actors import MaskFitter, Recomposer  # torch: loaded in the actor, not in the driver
+    def __init__(self, device: str = "cpu", database: str | None = None, threads: int = 1):
+        from workers.actors import MaskFitter  # loaded in the actor, not in the driver
 
-        recompose = kind is Placement.RECOMPOSE_ACTOR
-        placement.use_threads(threads, load_torch=recompose)
-        self.kind = kind
-        self.device, self.note = placement.pick_torch_device(device) if recompose else ("cpu", None)
-        self.holder = Recomposer(self.device) if recompose else MaskFitter(database)
+        placement.use_threads(threads, load_torch=device == "cuda")
+        self.threads = threads
+        self.device, self.note = placement.pick_torch_device(device)
+        self.fitter = MaskFitter(database)
+        self.recomposer = None
+
+    def _holder(self, call: StageCall) -> Any:
+        if stage(call.stage).placement is not Placement.RECOMPOSE_ACTOR:
+            return self.fitter
+        if self.recomposer is None:
+            from workers.actors import Recomposer  # torch: imported on the first recomposition
+
+            placement.use_threads(self.threads, load_torch=True)
+            self.recomposer = Recomposer(self.device)
+        # the actor's device wins over the material's option (which chose the pool)
+        call.spec = call.spec.with_options(call.stage, device=self.device)
+        return self.recomposer
 
     def run(self, call: StageCall) -> dict:
-        recompose = self.kind is Placement.RECOMPOSE_ACTOR
-        if recompose:  # the actor's device wins over the material's option (which chose the pool)
-            call.spec = call.spec.with_options(call.stage, device=self.device)
-        result = _on_node(run_stage(call, self.holder))
-        if recompose and self.note:
+        holder = self._holder(call)
+        result = _on_node(run_stage(call, holder))
+        if holder is self.recomposer and self.note:
             result["info"]["placement_note"] = self.note
         return result
 
@@ -325,11 +338,10 @@ class Scheduler:
     def _start_actor(self, pool: _Pool) -> None:
         """Request one more actor for ``pool`` (pending until Ray, or the autoscaler, finds it a node)."""
         threads = int(pool.cpus)
-        opts = placement.actor_options(pool.kind, threads, self.capacity)
-        args = ((Placement.MASK_ACTOR, "cpu", self.mask_database, 1) if pool.kind == "masks" else
-                (Placement.RECOMPOSE_ACTOR, "cuda" if pool.kind == "gpu" else "cpu", None, threads))
+        opts = self._actor_options(pool)
+        args = ("cuda" if pool.kind == "gpu" else "cpu", self.mask_database, threads)
         handle = ray.remote(max_restarts=0, max_task_retries=0, **opts)(_StageActor).remote(*args)
-        slot = _Slot(handle=handle, ready_ref=handle.ready.remote(), started=time.monotonic())
+        slot = _Slot(handle=handle, ready_ref=handle.ready.remote(), started=time.monotonic(), options=opts)
         pool.slots.append(slot)
         pool.started += 1
         self._starting[slot.ready_ref] = (pool, slot)
@@ -454,6 +466,7 @@ class Scheduler:
         self._check_gpu_wait()
         for pool in list(self._pools.values()):
             pool.queue = deque(e for e in pool.queue if self.mats[e[0]].error is None)
+            self._adopt(pool)
             for slot in pool.slots:
                 if not pool.queue:
                     break
@@ -465,6 +478,36 @@ class Scheduler:
             while len(pool.slots) < min(pool.limit, busy + len(pool.queue)):
                 self._start_actor(pool)
         self._retire_idle()
+
+    def _actor_options(self, pool: _Pool) -> dict[str, Any]:
+        """The Ray options (the shape) of an actor of ``pool``."""
+        return placement.actor_options(pool.kind, int(pool.cpus), self.capacity)
+
+    def _adopt(self, pool: _Pool) -> None:
+        """Give ``pool`` the idle actors of other pools that have nothing queued and the shape ``pool`` would start
+        (same Ray options: a one-CPU recomposition actor and a mask actor without ``mask_fitter`` pinning), instead
+        of retiring them for new processes (a few seconds of a core each time the work moves between mask fitting
+        and recomposition). An actor of ``pool`` still waiting for a node is withdrawn for one adopted."""
+        idle = sum(s.ready and s.busy is None for s in pool.slots)
+        pending = [s for s in pool.slots if not s.ready]
+        needed = len(pool.queue) - idle
+        if needed <= 0:
+            return
+        shape = self._actor_options(pool)
+        for other in self._pools.values():
+            if other is pool or other.queue:
+                continue
+            for slot in [s for s in other.slots if s.ready and s.busy is None and s.options == shape]:
+                if needed <= 0:
+                    return
+                if len(pool.slots) >= pool.limit:
+                    if not pending:
+                        return
+                    self._drop_slot(pool, pending.pop())
+                other.slots.remove(slot)
+                pool.slots.append(slot)
+                needed -= 1
+                logger.info("an idle %s actor on node %s now serves the %s pool", other.kind, slot.node, pool.kind)
 
     def _retire_idle(self) -> None:
         """Kill idle CPU actors with nothing queued while the CPUs reserved by the work in flight exceed the

@@ -161,6 +161,19 @@ def test_head_without_cpus_hosts_no_stage_work(nodes, materials_dir, tmp_path):
     assert mat["device"] == "cpu" and mat["device_note"] is None
 
 
+def test_an_idle_mask_actor_of_the_same_shape_runs_the_recomposition(nodes, materials_dir, tmp_path):
+    """With one-CPU recomposition actors, the mask actor left idle when the masks are done takes the recomposition
+    (the same process, no second actor started), and no item waits for an actor's start."""
+    pytest.importorskip("pptbf_db.index")
+    nodes.drop_gpu()
+    man, report = _run(_doc("adopt", [("castle_brick_broken_06", {})], split=True, recompose_cpus=1), tmp_path)
+    assert report.exit_code == 0, report.errors
+    _, rows = _rows(man, "castle_brick_broken_06")
+    pid = {r["stage"]: r["worker"].partition("@")[0] for r in rows if r["status"] == "done" and r["worker"]}
+    masks = {r["worker"].partition("@")[0] for r in rows if r["stage"] == "masks" and r["status"] == "done"}
+    assert pid["recompose"] in masks, (pid, masks)
+
+
 def test_auto_falls_back_to_cpu_after_the_wait_and_cuda_fails(nodes, materials_dir, tmp_path, monkeypatch, caplog):
     """A cluster that declares GPUs but never brings one up: after job.gpu_wait_s the "auto" material recomposes on
     CPU (warning, note in SQLite), the "cuda" one fails naming the reason, and the GPU demand is withdrawn."""
