@@ -407,3 +407,24 @@ def test_rows_without_cell_ends_keep_the_given_cell_length(bundled_index):
     got = _key_run_length(fit.params)
     print(f"given 12 px: tiling {fit.params[1]:.0f}, cells {got:.1f} px ({fit.meta['chosen']})")
     assert abs(got - 12.0) <= 0.20 * 12.0
+
+
+def test_mask_fit_command_takes_the_cells_length(tmp_path):
+    """`mask fit --cell-length` gives a mask of rows alone (lines every 16 px, no cell ends) the cells' length an
+    artist knows: the fit records it as given and its cells are that long within 20 % (41.7 px without it)."""
+    from service.cli import main
+    from workers.maps import write_image
+
+    y = np.arange(256)[:, None] % 16
+    src = write_image(tmp_path / "rows.png", np.broadcast_to(y < 2, (256, 256)).astype(np.float32), bits=8)
+    out = tmp_path / "rows.json"
+    assert main(["mask", "fit", str(src), "--out", str(out), "--cell-length", "12", "--evals", "60",
+                 "--budget", "30"]) == 0
+    doc = json.loads(out.read_text())
+    lat = doc["fit"]["meta"]["lattice"]
+    got = _key_run_length(np.asarray(doc["fit"]["params"], dtype=np.float64))
+    print(f"lattice {lat['kind']}, cell length {lat.get('cell_length')} (fixed {lat.get('cell_length_fixed')}); "
+          f"cells {got:.1f} px")
+    assert lat["cell_length_fixed"] and abs(lat["cell_length"] - 12.0) < 0.5
+    assert abs(got - 12.0) <= 0.20 * 12.0
+    assert main(["mask", "fit", str(src), "--out", str(out), "--cell-length", "-3"]) == 2

@@ -1,8 +1,9 @@
 """``proceduralize mask fit`` / ``mask render``: a PPTBF for any binary mask an artist has, outside a job.
 
-``mask fit MASK.png [--valid VALID.png] --out FIT.json`` fits a PPTBF (workers.masks.fit_pptbf_mask: lattice-first
-with the VGG-19 loss when the mask has a layout, else query and optimise) and writes FIT.json (the fit, the
-mask's size, the lattice found) and FIT.png beside it: target | a fresh realisation at the mask's size.
+``mask fit MASK.png [--valid VALID.png] [--cell-length PX] --out FIT.json`` fits a PPTBF
+(workers.masks.fit_pptbf_mask: lattice-first with the VGG-19 loss when the mask has a layout, else query and
+optimise) and writes FIT.json (the fit, the mask's size, the lattice found) and FIT.png beside it: target | a fresh
+realisation at the mask's size. ``--cell-length`` is the cells' length for a mask of rows alone.
 ``mask render FIT.json --size WxH [--seed N] [--scale S] --out MASK.png`` renders the fitted mask at any size:
 scale 1 keeps the pattern size the mask had, --seed picks a realisation (none: the fit's own).
 """
@@ -96,6 +97,9 @@ def register(sub) -> None:
     f.add_argument("--budget", type=positive_float, default=None, metavar="S", help="time budget in seconds")
     f.add_argument("--evals", type=int, default=None, metavar="N", help="loss evaluations at most")
     f.add_argument("--seed", type=int, default=0, help="optimiser seed (default 0)")
+    f.add_argument("--cell-length", type=positive_float, default=None, metavar="PX",
+                   help="the cells' length along the rows (px at the mask's size) for a mask of rows alone, whose "
+                        "lines show where the rows are but not where a cell ends (slate edges); ignored otherwise")
     f.set_defaults(handler=handle_fit)
     r = msub.add_parser("render", parents=[common_parser()], help="render a mask fit at any size",
                         description="Render FIT.json at WxH; scale 1 keeps the pattern size of the fitted mask.")
@@ -124,7 +128,7 @@ def handle_fit(args) -> int:
     if args.evals is not None:
         cfg.max_evals = args.evals
     t0 = time.perf_counter()
-    fit = fit_pptbf_mask(mask, index, valid=valid, config=cfg)
+    fit = fit_pptbf_mask(mask, index, valid=valid, config=cfg, cell_length=args.cell_length)
     h, w = mask.shape
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(fit_document(fit, args.mask, (w, h)), indent=1), encoding="utf-8")
