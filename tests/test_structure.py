@@ -355,6 +355,10 @@ def test_cells_along_rows_from_a_two_sided_2d_cut_with_the_same_rows():
     assert cells_along_rows(rows, [TwoDCut("tilt", 0.1, _lat("2d", [(5.0, 0.0), (0.0, 20.0)], 4.0, (5.0, 0.0),
                                                                 20.0))]) is None   # a harmonic: 0.25 rows
     assert cells_along_rows(_lat("2d", [(20.0, 0.0), (0.0, 20.0)]), cuts) is None
+    # a lattice that describes its own rows along its other vector (the README roof's tilt cut at 256 px) still
+    # reads as the split's rows along the first one
+    turned = TwoDCut("tilt", 0.35, _lat("2d", [(10.0, 0.0), (4.0, 9.9)], 2.5, (4.0, 9.9), 9.26))
+    assert cells_along_rows(_lat("rows", [(0.0, 9.87)]), [turned]) == (10.0, "tilt@0.35")
 
 
 def test_real_roof_rows_take_the_slates_length_from_the_tilt(materials_dir):
