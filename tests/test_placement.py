@@ -38,6 +38,45 @@ def test_route_and_reservation_rules():
         "num_cpus": 1, "resources": {placement.MASK_RESOURCE: 1}}
 
 
+def _pools_scheduler(capacity: placement.Capacity, **pools):
+    """A Scheduler with only the pool bookkeeping set (no Ray, no store): what _adopt reads."""
+    from service.scheduler import _Pool
+
+    s = Scheduler.__new__(Scheduler)
+    s.capacity, s._starting = capacity, {}
+    s._pools = {k: _Pool(kind=k, limit=limit, cpus=1.0) for k, limit in pools.items()}
+    return s
+
+
+def test_a_pool_adopts_idle_actors_of_its_shape_and_withdraws_a_pending_one():
+    """The CPU pool, at its bound with one actor still waiting for a node, takes the idle mask actor (same shape,
+    its pool has nothing queued) and withdraws the waiting one; a busy actor, a pool with work queued, or a mask
+    actor pinned by the ``mask_fitter`` resource (another shape) is never taken."""
+    from service.scheduler import _Slot
+
+    shape = {"num_cpus": 1}
+    s = _pools_scheduler(placement.Capacity(cpus=2, node_cpus=1), masks=1, cpu=2)
+    idle = _Slot(handle=None, ready_ref="m", ready=True, options=shape)
+    running = _Slot(handle=None, ready_ref="c1", ready=True, busy="ref", options=shape)
+    pending = _Slot(handle=None, ready_ref="c2", options=shape)
+    s._pools["masks"].slots.append(idle)
+    s._pools["cpu"].slots += [running, pending]
+    s._pools["cpu"].queue.append(("a", "recompose", "", 1, 0.0))
+    s._pools["masks"].queue.append(("b", "masks", "root.0", 1, 0.0))
+    s._adopt(s._pools["cpu"])   # the masks pool has work queued: its idle actor stays
+    assert s._pools["cpu"].slots == [running, pending] and s._pools["masks"].slots == [idle]
+    s._pools["masks"].queue.clear()
+    s._adopt(s._pools["cpu"])
+    assert s._pools["cpu"].slots == [running, idle] and s._pools["masks"].slots == []
+
+    pinned = _pools_scheduler(placement.Capacity(cpus=2, node_cpus=1, mask_slots=2), masks=1, cpu=2)
+    other = _Slot(handle=None, ready_ref="m", ready=True, options={"num_cpus": 1, "resources": {"mask_fitter": 1}})
+    pinned._pools["masks"].slots.append(other)
+    pinned._pools["cpu"].queue.append(("a", "recompose", "", 1, 0.0))
+    pinned._adopt(pinned._pools["cpu"])
+    assert pinned._pools["cpu"].slots == [] and pinned._pools["masks"].slots == [other]
+
+
 def test_declared_gpus_from_the_environment(monkeypatch):
     monkeypatch.setenv(placement.MAX_GPUS_ENV, "3")
     assert placement.declared_gpus() == 3
