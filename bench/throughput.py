@@ -107,13 +107,14 @@ def timeline(store, job: str, cpus: int) -> dict:
     if not spans:
         return {"busy": 0.0, "head": 0.0, "tail": 0.0}
     t0, t1 = min(s for s, _ in spans), max(f for _, f in spans)
-    events = sorted([(s, 1) for s, _ in spans] + [(f, -1) for _, f in spans])
-    running, full = 0, []
-    for t, step in events:
+    running, first, last = 0, t1, t1
+    for t, step in sorted([(s, 1) for s, _ in spans] + [(f, -1) for _, f in spans]):
+        was_full = running >= cpus
         running += step
-        full.append((t, running >= cpus))
-    first = next((t for t, f in full if f), t1)
-    last = max((t for (t, f), (_, g) in zip(full, full[:1] + full) if g and not f), default=t1)
+        if running >= cpus:
+            first = min(first, t)
+        elif was_full:
+            last = t          # the last time the workers stopped being full
     busy = sum(f - s for s, f in spans) / max((t1 - t0) * cpus, 1e-9)
     return {"busy": busy, "head": first - t0, "tail": t1 - last}
 

@@ -789,10 +789,12 @@ def match_tilings(lat: Lattice, max_error: float = 0.06, width: int = 256) -> li
         v = np.array(lat.vectors[0])
         alpha = math.atan2(v[0], v[1])            # domain y axis (rows stacked along it) -> v
         r = float(np.linalg.norm(v))
-        aspects = ROW_ASPECTS if lat.row_vector is None else \
-            (float(np.linalg.norm(lat.row_vector)) / r,) + ROW_ASPECTS
         if lat.cell_length_fixed and lat.cell_length:
-            aspects = ()                           # the cells' length is known: no other aspect
+            aspects: tuple = ()                    # the cells' length is known: no other aspect
+        elif lat.row_vector is None:
+            aspects = ROW_ASPECTS
+        else:
+            aspects = (float(np.linalg.norm(lat.row_vector)) / r,) + ROW_ASPECTS
         h = lat.row_height
         if h and abs(h - r) > ROW_HEIGHT_GAP * r:      # rows of random heights: the ashlars at the mean height
             own = (lat.cell_length / h,) if lat.cell_length else ()    # the measured cells first

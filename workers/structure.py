@@ -226,7 +226,9 @@ def cells_along_rows(rows: Lattice, cuts: list[TwoDCut]) -> tuple[float, str] | 
     spacing = float(np.linalg.norm(across))
     best = None
     for c in cuts:
-        for length, row_spacing, cos in _rows_readings(c.lattice, across):
+        for along, row_spacing in _rows_readings(c.lattice):
+            length = float(np.linalg.norm(along))
+            cos = abs(float(along @ across)) / (length * spacing)
             if abs(row_spacing - spacing) > SAME_PERIOD * spacing or \
                     cos > np.sin(np.radians(ROW_ANGLE_DEG)) or not CELL_RANGE[0] <= length / spacing <= CELL_RANGE[1]:
                 continue
@@ -236,21 +238,16 @@ def cells_along_rows(rows: Lattice, cuts: list[TwoDCut]) -> tuple[float, str] | 
     return None if best is None else (best[1], best[2])
 
 
-def _rows_readings(lat: Lattice, across: np.ndarray) -> list[tuple[float, float, float]]:
-    """Each way a 2-D lattice reads as rows along one of its basis vectors: (that vector's length, the spacing of
-    the rows it makes, |cos| of its angle to ``across``). Both vectors are read, not only the lattice's own
-    ``row_vector``: the README roof's tilt cut at 256 px, (10.0, 0) and (4.0, 9.9), describes its rows along the
-    second one, while the slates' rows run along the first."""
+def _rows_readings(lat: Lattice) -> list[tuple[np.ndarray, float]]:
+    """Each way a 2-D lattice reads as rows along one of its basis vectors: (that vector, the spacing of the rows
+    it makes: |det| / its length). Both vectors are read, not only the lattice's own ``row_vector``: the README
+    roof's tilt cut at 256 px, (10.0, 0) and (4.0, 9.9), describes its rows along the second one, while the
+    slates' rows run along the first."""
     if lat.kind != "2d" or len(lat.vectors) < 2:
         return []
     basis = np.array(lat.vectors[:2], dtype=np.float64)
     area = abs(float(np.linalg.det(basis)))
-    out = []
-    for v in basis:
-        length = float(np.linalg.norm(v))
-        if length > 0:
-            out.append((length, area / length, abs(float(v @ across)) / (length * float(np.linalg.norm(across)))))
-    return out
+    return [(v, area / float(np.linalg.norm(v))) for v in basis if np.linalg.norm(v) > 0]
 
 
 def find_structure(albedo: np.ndarray | None, height: np.ndarray | None, normal: np.ndarray | None,
