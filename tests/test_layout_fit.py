@@ -225,6 +225,36 @@ def test_lattice_gate_keeps_random_bricks_on_their_rows():
     assert not _keeps_lattice(loss, lat, (0.0, False, loss.with_threshold(taller, False)))
 
 
+def test_a_slower_machine_returns_the_same_fit(bundled_index, monkeypatch, caplog):
+    """The evaluations, not the clock, decide how far a fit searches: the same running bond fitted where each
+    evaluation takes longer (a clock running faster stands for a slower or busier machine: the fit takes about
+    100 s by it, twice the 50 s that used to be the binding limit) returns the same vector. Past its time limit
+    (the safety net) a fit stops early, warns and records it."""
+    import logging
+    import time
+
+    _, target = _bond()
+    cfg = MaskFitConfig(max_evals=40)
+    base = fit_pptbf_mask(target, bundled_index, config=cfg)
+    assert base.meta["method"] == "lattice" and base.meta["time_limited"] is False
+    real = time.perf_counter
+
+    def clock(factor: float):
+        t0 = real()
+        return lambda: t0 + (real() - t0) * factor
+
+    monkeypatch.setattr(time, "perf_counter", clock(100.0 / base.seconds))
+    slow = fit_pptbf_mask(target, bundled_index, config=cfg)
+    assert slow.seconds > 60.0 and slow.meta["time_limited"] is False
+    assert np.array_equal(slow.params, base.params) and slow.complement == base.complement
+    assert slow.evaluations == base.evaluations
+    monkeypatch.setattr(time, "perf_counter", clock(2.0 * cfg.time_budget_s / base.seconds))
+    with caplog.at_level(logging.WARNING, logger="workers.masks"):
+        cut = fit_pptbf_mask(target, bundled_index, config=cfg)
+    assert cut.meta["time_limited"] is True and cut.evaluations < base.evaluations
+    assert any("time limit" in r.getMessage() for r in caplog.records)
+
+
 def test_tiny_budget_is_respected(bundled_index):
     _, target = _bond(size=64, res=8)
     fit = fit_pptbf_mask(target, bundled_index, config=MaskFitConfig(max_evals=8, rounds=1, time_budget_s=10))

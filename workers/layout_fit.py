@@ -52,7 +52,7 @@ from .lattice import (
     split_sibling,
 )
 from .mask_opt import Budget, BudgetExhausted, OptSettings, optimise
-from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask
+from .masks import MaskFit, MaskFitConfig, MaskLoss, _validate, downsample_mask, time_limited, warn_time_limited
 
 logger = logging.getLogger(__name__)
 
@@ -394,8 +394,8 @@ class _Starts:
 
 
 #: the screening loss sees the target at this scale (a quarter of the pixels; about 0.15 s an evaluation at 256
-#: px against 0.37 s at full size) and may use at most this share of the fit's time
-SCREEN_SCALE, SCREEN_SHARE = 0.5, 0.2
+#: px against 0.37 s at full size)
+SCREEN_SCALE = 0.5
 #: layouts screened in both polarities first; the later ones in the likely polarity, then in the other
 SCREEN_BOTH = 16
 
@@ -492,7 +492,7 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
     entries (both polarities, threshold from the target)."""
     out = _Starts([], [])
     t0 = time.perf_counter()
-    layouts, out.screened = _screened_layouts(loss, lat, cfg, t0 + SCREEN_SHARE * cfg.time_budget_s)
+    layouts, out.screened = _screened_layouts(loss, lat, cfg, deadline)
     out.screen_seconds = time.perf_counter() - t0
     starts = [(p, c, "lattice") for p, c in layouts]
     matches = []
@@ -526,12 +526,6 @@ def _score_starts(target, valid, index, lat: Lattice, loss: GramMaskLoss, cfg: M
 PLACEMENT = LAYOUT + ("jitter", "distortion_base", "distortion_amplitude", "distortion_frequency")
 
 
-#: shares of the time left (before validation) given to the transplants, then to the window stage (the polish
-#: has the rest): the window stage's grid over the cell shape needs it most (a square grid's 32-sector cells:
-#: fresh-realisation Gram ratio 6.7 -> 1.2)
-TRANSPLANT_SHARE, WINDOW_SHARE = 0.2, 0.7
-
-
 def transplant(placement: np.ndarray, appearance: np.ndarray) -> np.ndarray:
     """A vector with the cells of `placement` (PLACEMENT entries) and the look of `appearance` (the rest)."""
     out = np.array(appearance, np.float64)
@@ -557,14 +551,12 @@ def _transplants(loss: "GramMaskLoss", lat: Lattice, placement: tuple, matches: 
     return _lattice_gate(loss, lat, out, at_most=3, first=True), losses
 
 
-#: share of the window stage's time for the line search on the crop (the local search at full size has the rest)
-WINDOW_SEARCH_SHARE = 0.6
 #: the crop the window stage's line search scores on: this share of the mask's width and height (a quarter of
 #: the pixels at full resolution: 0.1 s an evaluation against 0.38 s at 256 px, and on a pavement the same
 #: ranking of 25 cell shapes), used from this width of the crop up
 CROP_SHARE, CROP_MIN_WIDTH = 0.5, 64
 #: crop evaluations the window stage's line search may spend per full-size evaluation it is given (a crop costs
-#: about a quarter of one; the time limit still holds)
+#: about a quarter of one)
 CROP_EVALS = 2
 
 
@@ -622,11 +614,9 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     own, compl, x0, _ = start
     compl = bool(compl)
     pols = (compl,) if network_known else (compl, not compl)
-    now = time.perf_counter()
-    search_deadline = now + WINDOW_SEARCH_SHARE * (deadline - now)
     small = crop or loss
     cap = CROP_EVALS * max_evals if crop is not None else max(0, max_evals // 2)
-    searches = {c: Budget(lambda q, c=c: small(q, c), cap // len(pols) if len(pols) > 1 else cap, search_deadline)
+    searches = {c: Budget(lambda q, c=c: small(q, c), cap // len(pols) if len(pols) > 1 else cap, deadline)
                 for c in pols}
     for c in pols:
         window_lines(searches[c], x0, cycles=1, scan=False)
@@ -725,16 +715,12 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     lat_best = kept[0] if kept else next((s for s in ordered if s[3] == "lattice"), scored[0])
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
-        now = time.perf_counter()
-        trans, t_losses = _transplants(loss, lat, kept[0], st.matches, left // 5,
-                                       now + TRANSPLANT_SHARE * (stage_deadline - now))
+        trans, t_losses = _transplants(loss, lat, kept[0], st.matches, left // 5, stage_deadline)
         history += list(np.minimum.accumulate([history[-1]] + t_losses)[1:])
         n0, left = n0 + len(t_losses), left - len(t_losses)
         if trans:       # a candidate of its own: the window stage starts from the crisp cells (features off)
             cands.append((*trans[0], True))
-    now = time.perf_counter()
-    win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left),
-                        now + WINDOW_SHARE * (stage_deadline - now), cfg, seed,
+    win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left), stage_deadline, cfg, seed,
                         network_known=network_side_known(lat), scaled=scaled_entries(lat))
     b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
     history += win.history
@@ -746,6 +732,7 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
         cands = [c for c in cands if c[3] != "database"]
     best = min(cands, key=lambda c: c[0])
     b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed, fixed_cells(lat))
+    limited = time_limited(stage_deadline)
     history += b2.history
     cands.append((b2.best_loss, best[1], b2.best_params, "polish", True))
     cands.sort(key=lambda c: c[0])
@@ -765,6 +752,8 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     logger.info("PPTBF layout fit %dx%d (%s lattice, period %.1f px): loss %.4f (best start) -> %.4f, "
                 "%d evals, %.1f s%s", w, h, lat.kind, lat.period or 0.0, scored[0][0], own, evals, secs,
                 " (complement)" if complement else "")
+    if limited:
+        warn_time_limited(f"PPTBF layout fit {w}x{h}", evals, cfg)
     q = st.query
     # every evaluation set the threshold from the target's white fraction for its polarity; a vector that came
     # from the other polarity's start (window stage, polish) still carries that polarity's threshold
@@ -777,5 +766,5 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                    meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
                          "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
-                         "lattice_kept": len(gated) > 0, "chosen": chosen,
+                         "lattice_kept": len(gated) > 0, "chosen": chosen, "time_limited": limited,
                          "screened": st.screened, "window_search_evals": win.search_evals})
