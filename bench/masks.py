@@ -1,6 +1,6 @@
 """Benchmark PPTBF mask fitting: time per mask and loss of the fit vs the query result alone.
 
-Run: python bench/masks.py [--db DIR] [--n 6] [--budget 50] [--evals 300] [--working 512] [--seed 0]
+Run: python bench/masks.py [--db DIR] [--n 6] [--budget 200] [--evals 300] [--working 512] [--seed 0]
      [--tiny 400] [--tiny-res 64] [--no-brick] [--realisations 1] [--starts 1] [--structure] [--validate 2]
 (--validate 0 is the search before the fresh-realisation validation; --starts 3 --structure the multi-start)
 
@@ -79,7 +79,8 @@ def main(argv=None) -> None:
     ap.add_argument("--tiny", type=int, default=400, help="entries of the in-memory fallback database")
     ap.add_argument("--tiny-res", type=int, default=64, help="resolution (px) of the in-memory fallback database")
     ap.add_argument("--n", type=int, default=6, help="random-parameter targets")
-    ap.add_argument("--budget", type=float, default=50.0, help="time budget per mask (s)")
+    ap.add_argument("--budget", type=float, default=MaskFitConfig.time_budget_s,
+                    help="time limit per mask (s), a safety net: --evals decides how far a fit searches")
     ap.add_argument("--evals", type=int, default=300, help="evaluation budget per mask")
     ap.add_argument("--working", type=int, default=512, help="working size of the targets (px)")
     ap.add_argument("--seed", type=int, default=0)

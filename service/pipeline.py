@@ -312,6 +312,7 @@ def stage_masks(call: StageCall, holder: Any = None) -> dict:
     path = write_json(folder.mask_fit(node_id), doc)
     return {"files": [path], "info": {"node": node_id, "loss_query": float(fit.loss_query),
                                       "loss_final": float(fit.loss_final), "evaluations": int(fit.evaluations),
+                                      "time_limited": bool(fit.meta.get("time_limited", False)),
                                       "holder_fits": fitter.fits, "holder_index_loads": fitter.loads,
                                       "index_load_s": round(fitter.load_seconds, 3)}}
 

@@ -319,11 +319,16 @@ class Scheduler:
         return placement.cpu_threads(self.manifest.recompose_cpus, self.capacity)
 
     def _limit(self, kind: str) -> int:
-        """Most actors of a pool: masks CPUs/2 (or job.mask_actors, within ``mask_fitter`` slots); CPU
-        recomposition CPUs / its reservation; GPU recomposition the GPUs the cluster has or can reach."""
+        """Most actors of a pool: masks CPUs/2, or every CPU where no node holds a mask actor beside a CPU
+        recomposition actor of more than one thread (job.mask_actors overrides; within ``mask_fitter`` slots);
+        CPU recomposition CPUs / its reservation; GPU recomposition the GPUs the cluster has or can reach.
+        On a 2-CPU machine with 2-thread recompositions, half the CPUs for masks left the other one idle through
+        the whole mask phase: the recomposition it was kept for cannot start beside a mask actor anyway."""
         cap = self.capacity
         if kind == "masks":
-            n = self.manifest.mask_actors or max(1, int(cap.cpus) // 2)
+            threads = self._recompose_threads()
+            alone = threads > 1 and cap.node_cpus < 1 + threads
+            n = self.manifest.mask_actors or max(1, int(cap.cpus) // (1 if alone else 2))
             return min(n, cap.mask_slots) if cap.mask_slots else n
         if kind == "gpu":
             return max(1, cap.max_gpus)

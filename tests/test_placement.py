@@ -77,6 +77,25 @@ def test_a_pool_adopts_idle_actors_of_its_shape_and_withdraws_a_pending_one():
     assert pinned._pools["cpu"].slots == [] and pinned._pools["masks"].slots == [other]
 
 
+def test_masks_take_every_cpu_where_a_recomposition_cannot_run_beside_them():
+    """A 2-CPU machine with 2-thread CPU recompositions gets 2 mask actors (with CPUs/2 the second CPU sat idle
+    through the whole mask phase: the recomposition it was kept for cannot start beside a mask actor); a node
+    that holds both keeps CPUs/2 for masks, and so do 1-thread recompositions (their actors change pools);
+    job.mask_actors still decides when given."""
+    from types import SimpleNamespace
+
+    def limit(cpus: float, node_cpus: float, recompose_cpus: int = 2, mask_actors=None) -> int:
+        s = _pools_scheduler(placement.Capacity(cpus=cpus, node_cpus=node_cpus))
+        s.manifest = SimpleNamespace(mask_actors=mask_actors, recompose_cpus=recompose_cpus)
+        return s._limit("masks")
+
+    assert limit(2, 2) == 2
+    assert limit(4, 2) == 4                 # two 2-CPU nodes: a recomposition takes a whole node
+    assert limit(4, 4) == 2 and limit(16, 16) == 8
+    assert limit(2, 2, recompose_cpus=1) == 1 and limit(4, 1) == 2
+    assert limit(2, 2, mask_actors=1) == 1
+
+
 def test_declared_gpus_from_the_environment(monkeypatch):
     monkeypatch.setenv(placement.MAX_GPUS_ENV, "3")
     assert placement.declared_gpus() == 3
