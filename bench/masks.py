@@ -117,8 +117,12 @@ def main(argv=None) -> None:
         w, h = fit.fit_size
         small = downsample_mask(target, w, h)
         loss = MaskLoss(small, index)
-        q = index.query(~small if fit.meta["query_complement"] else small, k=1)[0]
-        qm = loss.render(q.params, fit.meta["query_complement"], threshold_from_target=False)
+        qc = fit.meta.get("query_complement")
+        if qc is None:      # the lattice-first path records no query polarity: the nearer one, as the query path
+            pos, neg = index.query(small, k=1), index.query(~small, k=1)
+            qc = bool(neg and (not pos or neg[0].distance < pos[0].distance))
+        q = index.query(~small if qc else small, k=1)[0]
+        qm = loss.render(q.params, qc, threshold_from_target=False)
         iou_q = best_shift_iou(qm, small)[0]
         iou_f = best_shift_iou(fit.render(), small)[0]
         f = float(small.mean())
@@ -128,7 +132,7 @@ def main(argv=None) -> None:
             t[pp.PARAM_INDEX["resolution"]] = max(1.0, np.floor(t[pp.PARAM_INDEX["resolution"]] * w / W))
             floor = realisation_distance(loss, t)
             r_fit = realisation_distance(loss, fit.params, fit.complement) / floor
-            r_q = realisation_distance(loss, q.params, fit.meta["query_complement"]) / floor
+            r_q = realisation_distance(loss, q.params, qc) / floor
             other = pp.render_mask(loss.with_threshold(t), w, h, shift=(9.1, 13.7), ref_width=w)
             iou_fl = best_shift_iou(other, small)[0]
         rows.append((fit.loss_final < fit.loss_query, fit.seconds, iou_q, iou_f, r_fit, r_q))
