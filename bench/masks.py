@@ -1,6 +1,6 @@
 """Benchmark PPTBF mask fitting: time per mask and loss of the fit vs the query result alone.
 
-Run: python bench/masks.py [--db DIR] [--n 6] [--budget 200] [--evals 300] [--working 512] [--seed 0]
+Run: python bench/masks.py [--db DIR] [--n 6] [--budget 300] [--evals 300] [--working 512] [--seed 0]
      [--tiny 400] [--tiny-res 64] [--no-brick] [--realisations 1] [--starts 1] [--structure] [--validate 2]
 (--validate 0 is the search before the fresh-realisation validation; --starts 3 --structure the multi-start)
 

@@ -79,9 +79,10 @@ class MaskFitConfig:
 
     rounds: int = 5
     max_evals: int = 300          # how far a fit searches: the same evaluations, so the same fit, on any machine
-    time_budget_s: float = 200.0  # a safety limit only (about 4x an idle 2-core machine's 50-56 s for 300
-    #                               evaluations at 256 px): a fit that reaches it stops early, logs a warning
-    #                               and records meta["time_limited"], since where it stopped depends on the load
+    time_budget_s: float = 300.0  # a safety limit only: a fit that reaches it stops early, logs a warning and
+    #                               records meta["time_limited"], since where it stopped depends on the load (300
+    #                               evaluations at 256 px: 50-56 s alone on this 2-core machine, the castle's
+    #                               8.5 px bricks 81 s alone and 113-118 s beside other fits in a job)
     fit_size: int | None = None
     seed: int = 0
     top_k: int = 5

@@ -95,7 +95,7 @@ def register(sub) -> None:
     f.add_argument("--out", type=Path, required=True, metavar="FIT.json")
     f.add_argument("--db", type=Path, default=None, metavar="DIR", help="PPTBF database (default: the bundled one)")
     f.add_argument("--budget", type=positive_float, default=None, metavar="S",
-                   help="time limit in seconds, a safety net (default 200): --evals decides how far the fit "
+                   help="time limit in seconds, a safety net (default 300): --evals decides how far the fit "
                    "searches, so the same mask gives the same fit on any machine")
     f.add_argument("--evals", type=int, default=None, metavar="N", help="loss evaluations at most")
     f.add_argument("--seed", type=int, default=0, help="optimiser seed (default 0)")
