@@ -299,6 +299,7 @@ def test_split_material_runs_masks_on_actors_and_renders(ray_session, materials_
     doc["defaults"].update(decompose={"mode": "auto", "layers": 3}, recompose={"iterations": 2},
                            masks={"max_evals": 15, "rounds": 1, "time_budget_s": 10.0},
                            outputs={"sizes": [64, [96, 48]], "seeds": [0, 5]})
+    doc["job"]["mask_actors"] = 1       # (2 CPUs would give masks two actors: recompositions take both CPUs)
     man, report = _run(doc, tmp_path)
     assert report.exit_code == 0, report.errors
     n = "castle_brick_broken_06"
@@ -309,7 +310,7 @@ def test_split_material_runs_masks_on_actors_and_renders(ray_session, materials_
         assert [r["item"] for r in masks] == leaves[:-1]  # the last layer is 1 - the fitted ones
         infos = [json.loads(r["info"]) for r in masks]
         assert all(r["status"] == "done" for r in masks) and len(masks) >= 1
-        # one actor (2 CPUs -> pool of 1) fitted every mask and loaded the index once
+        # one actor (job.mask_actors = 1) fitted every mask and loaded the index once
         assert sorted(i["holder_fits"] for i in infos) == list(range(1, len(masks) + 1))
         assert all(i["holder_index_loads"] == 1 for i in infos)
         assert len(s.items("split", n, "noise")) == len(leaves) * 3  # leaves x albedo, height, roughness
