@@ -133,7 +133,6 @@ class _Pool:
     queue: deque = field(default_factory=deque)   # (material, stage, item, attempt, queued wall time)
     slots: list = field(default_factory=list)
     start_failures: int = 0
-    started: int = 0
 
 
 def _retryable_errors() -> tuple[type, ...]:
@@ -348,7 +347,6 @@ class Scheduler:
         handle = ray.remote(max_restarts=0, max_task_retries=0, **opts)(_StageActor).remote(*args)
         slot = _Slot(handle=handle, ready_ref=handle.ready.remote(), started=time.monotonic(), options=opts)
         pool.slots.append(slot)
-        pool.started += 1
         self._starting[slot.ready_ref] = (pool, slot)
         logger.info("requested a %s actor %s (%d in the pool, at most %d)", pool.kind, opts, len(pool.slots),
                     pool.limit)
