@@ -28,7 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from pptbf_db import pptbf as pp
-from workers.masks import MaskFitConfig, MaskLoss, best_shift_iou, downsample_mask, fit_pptbf_mask, realisation_distance
+from workers.masks import (
+    MaskFitConfig,
+    MaskLoss,
+    best_shift_iou,
+    downsample_mask,
+    fit_pptbf_mask,
+    nearer_is_complement,
+    realisation_distance,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -119,8 +127,7 @@ def main(argv=None) -> None:
         loss = MaskLoss(small, index)
         qc = fit.meta.get("query_complement")
         if qc is None:      # the lattice-first path records no query polarity: the nearer one, as the query path
-            pos, neg = index.query(small, k=1), index.query(~small, k=1)
-            qc = bool(neg and (not pos or neg[0].distance < pos[0].distance))
+            qc = nearer_is_complement(index.query(small, k=1), index.query(~small, k=1))
         q = index.query(~small if qc else small, k=1)[0]
         qm = loss.render(q.params, qc, threshold_from_target=False)
         iou_q = best_shift_iou(qm, small)[0]

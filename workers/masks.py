@@ -526,7 +526,7 @@ def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int, cell_length: float |
     loss = _vgg_loss(target, valid_s, cfg) if cfg.loss == "vgg19" else \
         MaskLoss(target, index, valid_s, shift=cfg.shift, realisations=cfg.realisations)
     # "the query result alone": the index's nearest entry over both polarities, rendered verbatim
-    q_compl = bool(q_neg and (not q_pos or q_neg[0].distance < q_pos[0].distance))
+    q_compl = nearer_is_complement(q_pos, q_neg)
     q_best = (q_neg if q_compl else q_pos)[0]
     loss_query = loss(q_best.params, q_compl, threshold_from_target=False)
     # re-rank both top-k lists with the target's threshold at our realisation; the best fixes the polarity
@@ -599,6 +599,12 @@ def _vgg_loss(target: np.ndarray, valid: np.ndarray | None, cfg: MaskFitConfig) 
     from .layout_fit import GramMaskLoss
 
     return GramMaskLoss(target, valid, shift=cfg.shift, realisations=cfg.realisations)
+
+
+def nearer_is_complement(q_pos: list, q_neg: list) -> bool:
+    """Whether the database's nearest entry over both polarities is a match of the complement (``q_neg``: the
+    query of ~mask) rather than of the mask (``q_pos``): the polarity of "the query result alone"."""
+    return bool(q_neg and (not q_pos or q_neg[0].distance < q_pos[0].distance))
 
 
 def time_limited(deadline: float) -> bool:
