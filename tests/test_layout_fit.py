@@ -458,3 +458,41 @@ def test_mask_fit_command_takes_the_cells_length(tmp_path):
     assert lat["cell_length_fixed"] and abs(lat["cell_length"] - 12.0) < 0.5
     assert abs(got - 12.0) <= 0.20 * 12.0
     assert main(["mask", "fit", str(src), "--out", str(out), "--cell-length", "-3"]) == 2
+
+
+def _half_cell_herringbone():
+    """Bench target 8: a split 2:1 herringbone of 97 px cells at aspect 1.79 (about five cells across 256 px),
+    whose lattice analysis reads the near-lattice that adds half of the layout's (-0.5, 0.5) cell vector."""
+    p = L.layout_params(L.LatticeMatch(11, 97.25, 1.79205242, 1.89788735, 0.0), 0.68801354, larp=0.75772885)
+    for name, value in (("jitter", 0.04974227), ("window_smoothness", 0.52931216), ("window_arity", 3.0)):
+        p[pp.PARAM_INDEX[name]] = value
+    return p, pp.render_mask(p, 256, 256, shift=(3.31724679, 5.87586857))
+
+
+def test_two_to_one_herringbone_half_cell_near_lattice():
+    """The target's lattice is the index-2 near-lattice of its 2:1 herringbone: the family's own layout is
+    matched (resolution and aspect within 3 %, rotation within 0.02 of a half turn) as one of the family's own
+    lattices (error < 0.02, no alternative's penalty), and the lattice gate passes the true parameters, whose
+    renders read the exact lattice (period twice the target's along one vector): the two readings are lattices of
+    one layout. A running bond on the layout's own period still fails. Without the near-lattice the family was
+    matched only at 167-171 px and the gate turned the truth away: bench target 8 came back as long bricks in a
+    running bond (VGG-19 Gram ratio 6.8; 1.6 with it, a split herringbone)."""
+    from workers.layout_fit import GATE_SHIFTS, _keeps_lattice
+
+    p, target = _half_cell_herringbone()
+    lat = L.analyse_lattice(target)
+    assert lat.kind == "2d" and abs(lat.period - 48.6) < 2.0, lat
+
+    def turn(a: float) -> float:
+        return min(abs(a - 1.898) % 1.0, 1.0 - abs(a - 1.898) % 1.0)
+
+    own = [m for m in L.match_tilings(lat, width=256) if m.tiling in (10, 11)
+           and abs(m.resolution - 97.25) < 0.03 * 97.25 and abs(m.aspect - 1.792) < 0.03 * 1.792
+           and turn(m.rotation) < 0.02]
+    assert own and min(m.error for m in own) < 0.02, own
+    loss = GramMaskLoss(target, factor=loss_factor(256))
+    exact = [L.analyse_lattice(loss.render(p, False, True, shift=s)) for s in GATE_SHIFTS]
+    assert all(L.compare_lattices(lat, e)[0] > 0.5 for e in exact)       # no render reads the target's lattice
+    assert _keeps_lattice(loss, lat, (0.0, False, p))
+    bond = L.layout_params(L.LatticeMatch(4, 97.25, 0.5, 1.898, 0.0), lat.white_fraction)
+    assert not _keeps_lattice(loss, lat, (0.0, False, bond))
