@@ -252,6 +252,11 @@ def _refine(ac: np.ndarray, basis: np.ndarray, radius: float) -> np.ndarray:
 RIDGE_DIP = 0.9
 
 
+#: the repeat across continuous lines is the first peak of the profile across them that reaches this share of the
+#: profile's highest
+ACROSS_PEAK_SHARE = 0.5
+
+
 def _across_lines(ac: np.ndarray, v: np.ndarray, radius: float, min_period: float) -> np.ndarray | None:
     """The repeat across continuous lines that run along v: the first autocorrelation peak along v's normal
     (sub-pixel), or None when v is not on a ridge through the origin or the normal shows no peak. Rows of
@@ -267,7 +272,11 @@ def _across_lines(ac: np.ndarray, v: np.ndarray, radius: float, min_period: floa
     a = float(angles[int(np.argmax(rays.mean(axis=1)))])
     n = np.array([-math.sin(a), math.cos(a)])
     prof = _sample(ac, t[:, None] * n[None])
-    peak = np.flatnonzero((prof[1:-1] >= prof[:-2]) & (prof[1:-1] > prof[2:])) + 1
+    # a peak is at least ACROSS_PEAK_SHARE of the highest: between clean lines the profile is flat, and its
+    # rounding noise (or the wrap of a period that does not divide the mask) made "peaks" there (lines 2 px wide
+    # every 16 px read as rows 5.9 px apart, every 24 px as 16 px)
+    peak = np.flatnonzero((prof[1:-1] >= prof[:-2]) & (prof[1:-1] > prof[2:]) &
+                          (prof[1:-1] >= ACROSS_PEAK_SHARE * prof.max())) + 1
     if not len(peak) or prof[:peak[0]].min() >= RIDGE_DIP * prof[peak[0]]:
         return None
     i = int(peak[0])

@@ -40,6 +40,7 @@ from pptbf_db.features import GramExtractor, gram_distance
 
 from .inpaint import masked_autocorrelation
 from .lattice import (
+    CELL_TEMPLATE,
     ROW_FAMILIES,
     SPLIT_FAMILIES,
     Lattice,
@@ -664,14 +665,23 @@ def _window_stage(loss: GramMaskLoss, crop: GramMaskLoss | None, start: tuple, w
     return _Window(b, c, b.evaluations + counted, history + b.history, search_evals if crop is not None else 0)
 
 
-#: entries the window stage and the polish keep when the cells' length along rows is given (cell_length_fixed): a
-#: network of rows alone scores longer cells better (fewer ends to miss), which is no information on the cells
-FIXED_CELLS = ("aspect_ratio",)
+#: entries no stage of a fit moves when the cells' length along rows is given (cell_length_fixed): the aspect ratio
+#: (a network of rows alone scores longer cells better: fewer ends to miss, which is no information on the cells)
+#: and the cell window and features, kept at the crisp template's rectangles (``lattice.CELL_TEMPLATE``): such a
+#: network says nothing of the cells' ends either, and the fit shaped them to hide them: the README roof's slates
+#: came back as rounded bars whose joints were notches at the rows (VGG-19 Gram 0.37 to the rows-only network,
+#: the crisp rectangles 0.70; with the joints read off the albedo's dark lines drawn into it, 0.45 and 0.37)
+FIXED_CELLS = ("aspect_ratio",) + tuple(n for n in CELL_TEMPLATE if not n.startswith("distortion_"))
 
 
 def fixed_cells(lat: Lattice) -> tuple[str, ...]:
     """The entries no stage of a fit moves on ``lat``: FIXED_CELLS when the cells' length is given, else none."""
     return FIXED_CELLS if lat.cell_length_fixed else ()
+
+
+def shape_fixed(lat: Lattice) -> bool:
+    """The cells' window is not fitted (FIXED_CELLS): no window stage, no transplanted looks, no polish lines."""
+    return "window_larp" in fixed_cells(lat)
 
 
 #: cell-shape lines the polish runs first at full size: the candidate it starts from may come from a database
@@ -687,7 +697,7 @@ def _polish(loss: GramMaskLoss, best: tuple, width: int, max_evals: int, deadlin
     b = Budget(lambda q, c=compl: loss(q, c), max(0, max_evals), deadline)
     b.seed(x0, own)
     try:
-        for name in POLISH_LINES:
+        for name in (n for n in POLISH_LINES if n not in frozen):
             x0 = _line(b, x0, name, WINDOW_LINES[name])
     except BudgetExhausted:
         return b
@@ -732,23 +742,29 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
     ordered = _layouts_first(scored, lat)
     kept = _lattice_gate(loss, lat, ordered, at_most=GATE_CHECKS, first=True)
     lat_best = kept[0] if kept else next((s for s in ordered if s[3] == "lattice"), scored[0])
+    fixed_shape = shape_fixed(lat)
     if kept:
         cands.append((kept[0][0], kept[0][1], kept[0][2], kept[0][3], True))
+    if kept and not fixed_shape:
         trans, t_losses = _transplants(loss, lat, kept[0], st.matches, left // 5, stage_deadline)
         history += list(np.minimum.accumulate([history[-1]] + t_losses)[1:])
         n0, left = n0 + len(t_losses), left - len(t_losses)
         if trans:       # a candidate of its own: the window stage starts from the crisp cells (features off)
             cands.append((*trans[0], True))
-    win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left), stage_deadline, cfg, seed,
-                        network_known=network_side_known(lat), scaled=scaled_entries(lat))
-    b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
-    history += win.history
-    logger.info("layout fit: window stage from %s (%.4f): %d evals (+%d on the crop) -> %.4f%s, %.1f s into the "
-                "fit", lat_best[3], lat_best[0], w_evals, win.search_evals, b1.best_loss,
-                " (other polarity)" if w_compl != lat_best[1] else "", time.perf_counter() - t0)
-    cands.append((b1.best_loss, w_compl, b1.best_params, "window", True))
-    if lat.cell_length_fixed:   # the mask cannot tell the cells' length: only layouts placed with the given one
+    w_evals, window_loss, window_search = 0, None, 0
+    if not fixed_shape:
+        win = _window_stage(loss, crop_loss(loss), lat_best, w, int(0.6 * left), stage_deadline, cfg, seed,
+                            network_known=network_side_known(lat), scaled=scaled_entries(lat))
+        b1, w_compl, w_evals = win.budget, win.complement, win.evaluations
+        history += win.history
+        logger.info("layout fit: window stage from %s (%.4f): %d evals (+%d on the crop) -> %.4f%s, %.1f s into "
+                    "the fit", lat_best[3], lat_best[0], w_evals, win.search_evals, b1.best_loss,
+                    " (other polarity)" if w_compl != lat_best[1] else "", time.perf_counter() - t0)
+        cands.append((b1.best_loss, w_compl, b1.best_params, "window", True))
+        window_loss, window_search = float(b1.best_loss), win.search_evals
+    if lat.cell_length_fixed:   # the mask cannot tell the cells: only layouts placed with the given length
         cands = [c for c in cands if c[3] != "database"]
+        cands = cands or [(lat_best[0], lat_best[1], lat_best[2], lat_best[3], True)]
     best = min(cands, key=lambda c: c[0])
     b2 = _polish(loss, best, w, left - w_evals, stage_deadline, cfg, seed, fixed_cells(lat))
     limited = time_limited(stage_deadline)
@@ -784,6 +800,6 @@ def fit_layout(target: np.ndarray, valid: np.ndarray | None, index, lat: Lattice
                    shift=tuple(cfg.shift), entry_id=getattr(q[0], "entry_id", None) if q else None,
                    meta={"method": "lattice", "loss": "vgg19+layout", "white_fraction": loss.white,
                          "lattice": lat.to_dict(), "validation_loss": val, "start_loss": float(scored[0][0]),
-                         "start_kind": scored[0][3], "window_stage_loss": float(b1.best_loss),
+                         "start_kind": scored[0][3], "window_stage_loss": window_loss,
                          "lattice_kept": len(gated) > 0, "chosen": chosen, "time_limited": limited,
-                         "screened": st.screened, "window_search_evals": win.search_evals})
+                         "screened": st.screened, "window_search_evals": window_search})
