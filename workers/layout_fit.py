@@ -19,7 +19,8 @@ spectrum) even scores that speckle better than a hand-built wall. Here the layou
    sector count is a rounded step a local search cannot move, and the loss is sharp in larp) on a crop of the
    target at full resolution (a quarter of the cost), then the window entries by local search at full size
    (window shape and mixture by sweep); then the best candidate so far gets a line over larp and smoothness at
-   full size and every entry is freed for a final polish with small steps.
+   full size and every entry is freed for a final polish with small steps. A mask of rows alone whose cells'
+   length is given skips the cell shape: the crisp template's cells stay (``FIXED_CELLS``).
 4. The candidates (polished, layout-fixed, best start, best database entry) are compared on fresh realisations;
    the best there is returned.
 
