@@ -316,3 +316,73 @@ def test_cuda_matches_cpu():
     assert gpu.loss_before == pytest.approx(cpu.loss_before, rel=1e-3)
     for k, v in cpu.params_after.items():
         assert np.allclose(v, gpu.params_after[k], atol=2e-3), k
+
+
+# ----------------------------------------------------------------------------- cells of lattice masks
+
+#: the cell shape the masks stage fitted to README metal_plate_02's seams (barrel-shaped plates, ragged borders)
+SHAPED_CELLS = {"window_shape": 2.0, "window_arity": 8.08, "window_larp": 0.625, "window_norm": 2.49,
+                "window_blend": 0.9, "window_sigma": 2.75, "feature_mixture": 2.0, "feature_norm": 1.01,
+                "feature_correlation": 0.51, "feature_aniso": 0.35, "feature_kernel_min": 7.0,
+                "feature_kernel_max": 7.0, "feature_sigcos": 0.79, "feature_sigcosvar": 0.68, "feature_frequency": 5.0,
+                "feature_phase_shift": 0.41, "feature_thickness": 0.077, "feature_curvature": 0.62,
+                "feature_orientation": 0.18}
+
+
+def _plate_layouts() -> tuple[np.ndarray, np.ndarray]:
+    """(crisp, shaped) 29-vectors: plates in a running bond, 32 px, seams a quarter of the area."""
+    from pptbf_db import pptbf as pp
+    from workers.lattice import template_cells
+
+    crisp = template_cells(np.zeros(pp.N_PARAMS))
+    for k, v in {"threshold": 0.25, "tiling": 4.0, "resolution": 32.25, "aspect_ratio": 0.68}.items():
+        crisp[pp.PARAM_INDEX[k]] = v
+    shaped = crisp.copy()
+    for k, v in SHAPED_CELLS.items():
+        shaped[pp.PARAM_INDEX[k]] = v
+    return crisp, shaped
+
+
+def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", size: int = 128) -> dict:
+    """choose_cells' report on plates (cells of ``truth``, dark seams) whose split's fit is ``fitted``."""
+    from pptbf_db import pptbf as pp
+    from workers import noise as N
+    from workers.assemble import build_material
+    from workers.maps import Material
+    from workers.masks import MaskFit
+    from workers.recompose import choose_cells
+
+    plates = ~pp.render_mask(truth, size, size, shift=(1.3, 2.1))
+    rng = np.random.default_rng(0)
+    albedo = np.where(plates[..., None], np.float32([0.55, 0.45, 0.35]), np.float32([0.1, 0.08, 0.06]))
+    albedo = (albedo + 0.02 * rng.standard_normal(albedo.shape)).astype(np.float32)
+    tree = root_node(size, size)
+    tree.method = "matting"
+    tree.children = [MaskNode("root.0", plates), MaskNode("root.1", ~plates)]
+    fit = MaskFit(params=np.asarray(fitted), complement=True, loss_query=0.0, loss_final=0.0, evaluations=0,
+                  seconds=0.0, history=[], fit_size=(size, size), meta={"method": method})
+    noises = {(c.id, "albedo"): N.fit_noise(albedo, c.mask).to_params() for c in tree.children}
+    mat = Material(albedo=albedo, name="plates")
+    proc, report = choose_cells(lambda f: build_material(mat, tree, noises, f, seed=0),
+                                {"root.0": {"fit": fit.to_dict()}}, mat, RecomposeConfig())
+    report["params"] = proc.node("mask_root_0")["params"]["params"]
+    return report
+
+
+def test_lattice_masks_take_the_crisp_cells_where_the_material_prefers_them():
+    """A lattice mask fit whose cells copy the decomposition's raggedness is replaced by the crisp template's
+    cells (same layout and threshold) when the material's evaluation loss says so, and only then."""
+    from workers.lattice import template_cells
+
+    crisp, shaped = _plate_layouts()
+    on_crisp = _choose_for(crisp, shaped)          # crisp plates in the input, shaped cells fitted
+    r = on_crisp["fits"]["root.0"]
+    assert r["chosen"] == "template" and r["template"] < 0.8 * r["fitted"], r
+    assert np.allclose(template_cells(on_crisp["params"]), on_crisp["params"]) and on_crisp["loss"] == r["template"]
+    on_shaped = _choose_for(shaped, shaped)        # the input's plates are the shaped ones: the fit stays
+    r = on_shaped["fits"]["root.0"]
+    assert r["chosen"] == "fitted" and r["template"] > 1.2 * r["fitted"], r
+    assert not np.allclose(template_cells(on_shaped["params"]), on_shaped["params"])
+    # a query-path fit (no lattice: its cells are its look) and a fit already crisp are not compared
+    assert _choose_for(crisp, shaped, method="query")["fits"] == {}
+    assert _choose_for(crisp, crisp)["fits"] == {}

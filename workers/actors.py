@@ -16,7 +16,7 @@ from pptbf_db.index import PPTBFIndex, default_database_path
 
 from .assemble import build_material
 from .masks import fit_pptbf_mask
-from .recompose import RecomposeConfig, optimise
+from .recompose import RecomposeConfig, choose_cells, optimise
 
 logger = logging.getLogger(__name__)
 
@@ -60,12 +60,15 @@ class Recomposer:
             seed: int = 0, pieces: dict | None = None) -> tuple[Any, dict]:
         """(optimised ProceduralMaterial, report with loss before/after) via ``workers.recompose``."""
         t0 = time.perf_counter()
-        proc = build_material(material, tree, noises, fits, seed, pieces)
         opts = dict(options or {})
         if int(opts.get("iterations", 1)) == 0:
+            proc = build_material(material, tree, noises, fits, seed, pieces)
             return proc, {"device": self.device, "iterations": 0, "seconds": time.perf_counter() - t0}
         cfg = RecomposeConfig.from_dict({"seed": seed, "device": self.device, **opts})
+        proc, cells = choose_cells(lambda f: build_material(material, tree, noises, f, seed, pieces), fits,
+                                   material, cfg)
         res = optimise(proc, material, cfg)
         report = res.report()
+        report["cells"] = cells
         report["seconds_total"] = round(time.perf_counter() - t0, 3)
         return res.material, report

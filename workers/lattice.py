@@ -903,12 +903,19 @@ def _round_robin(matches: list[LatticeMatch], per_round: int = 2) -> list[Lattic
     return out
 
 
+def template_cells(params) -> np.ndarray:
+    """``params`` (a 29-vector) with the crisp cell template's entries (``CELL_TEMPLATE``): the same layout and
+    threshold, rectangular cells with straight borders and no features, jitter or distortion."""
+    p = np.array(params, dtype=np.float64)
+    for name, v in CELL_TEMPLATE.items():
+        p[_I[name]] = v
+    return p
+
+
 def layout_params(m: LatticeMatch, white_fraction: float, larp: float = 1.0,
                   base: np.ndarray | None = None) -> np.ndarray:
     """A 29-vector with the match's layout and the crisp cell template (threshold = white fraction)."""
-    p = np.zeros(pp.N_PARAMS) if base is None else np.array(base, dtype=np.float64)
-    for name, v in CELL_TEMPLATE.items():
-        p[_I[name]] = v
+    p = template_cells(np.zeros(pp.N_PARAMS) if base is None else base)
     p[_I["threshold"]] = white_fraction
     p[_I["tiling"]] = m.tiling
     res = max(2, int(round(m.resolution)))      # the period is an integer number of pixels (decode truncates)
