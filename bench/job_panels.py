@@ -22,6 +22,7 @@ sys.path.insert(0, str(REPO))
 
 from workers import graph  # noqa: E402
 from workers import lattice as L  # noqa: E402
+from workers.assemble import graph_id  # noqa: E402
 from workers.maps import linear_to_srgb, read_image, write_image  # noqa: E402
 
 
@@ -47,9 +48,8 @@ def material_panel(mdir: Path, seed: int) -> tuple[np.ndarray, list[str]]:
         if not src.is_file():
             continue
         target = read_image(src)[..., 0] > 0.5
-        nid = next((k for k, n in mat.nodes.items() if n["type"] == "pptbf" and
-                    np.allclose(n["params"]["params"], doc["node_params"]["params"])), None)
-        if nid is None:
+        nid = graph_id("mask", node)    # the recomposition may have given it the crisp template's cells
+        if nid not in mat.nodes or mat.nodes[nid]["type"] != "pptbf":
             continue
         ctx = graph.EvalContext(width=w, height=h, seed=seed, working_size=mat.working_size)
         fitted = graph.evaluate_node(mat, nid, ctx)[..., 0] > 0.5

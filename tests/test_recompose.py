@@ -343,7 +343,8 @@ def _plate_layouts() -> tuple[np.ndarray, np.ndarray]:
     return crisp, shaped
 
 
-def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", size: int = 128) -> dict:
+def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", size: int = 128,
+                **meta) -> dict:
     """choose_cells' report on plates (cells of ``truth``, dark seams) whose split's fit is ``fitted``."""
     from pptbf_db import pptbf as pp
     from workers import noise as N
@@ -359,8 +360,11 @@ def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", 
     tree = root_node(size, size)
     tree.method = "matting"
     tree.children = [MaskNode("root.0", plates), MaskNode("root.1", ~plates)]
+    from workers.lattice import analyse_lattice
+
     fit = MaskFit(params=np.asarray(fitted), complement=True, loss_query=0.0, loss_final=0.0, evaluations=0,
-                  seconds=0.0, history=[], fit_size=(size, size), meta={"method": method})
+                  seconds=0.0, history=[], fit_size=(size, size),
+                  meta={"method": method, "lattice": analyse_lattice(plates).to_dict(), **meta})
     noises = {(c.id, "albedo"): N.fit_noise(albedo, c.mask).to_params() for c in tree.children}
     mat = Material(albedo=albedo, name="plates")
     proc, report = choose_cells(lambda f: build_material(mat, tree, noises, f, seed=0),
@@ -371,18 +375,28 @@ def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", 
 
 def test_lattice_masks_take_the_crisp_cells_where_the_material_prefers_them():
     """A lattice mask fit whose cells copy the decomposition's raggedness is replaced by the crisp template's
-    cells (same layout and threshold) when the material's evaluation loss says so, and only then."""
+    cells (same layout and threshold) when they keep the fit's lattice and the material's evaluation loss says
+    so, and only then."""
     from workers.lattice import template_cells
 
     crisp, shaped = _plate_layouts()
     on_crisp = _choose_for(crisp, shaped)          # crisp plates in the input, shaped cells fitted
     r = on_crisp["fits"]["root.0"]
-    assert r["chosen"] == "template" and r["template"] < 0.8 * r["fitted"], r
+    assert r["chosen"] == "template" and r["keeps_lattice"] and r["template"] < 0.8 * r["fitted"], r
     assert np.allclose(template_cells(on_crisp["params"]), on_crisp["params"]) and on_crisp["loss"] == r["template"]
     on_shaped = _choose_for(shaped, shaped)        # the input's plates are the shaped ones: the fit stays
     r = on_shaped["fits"]["root.0"]
     assert r["chosen"] == "fitted" and r["template"] > 1.2 * r["fitted"], r
     assert not np.allclose(template_cells(on_shaped["params"]), on_shaped["params"])
-    # a query-path fit (no lattice: its cells are its look) and a fit already crisp are not compared
+    # crisp cells that do not show the lattice the fit was made for are no choice, whatever the loss
+    from pptbf_db import pptbf as pp
+    from workers.lattice import analyse_lattice
+
+    other = analyse_lattice(~pp.render_mask(crisp, 128, 128, shift=(1.3, 2.1))).scaled(1.5).to_dict()
+    r = _choose_for(crisp, shaped, lattice=other)["fits"]["root.0"]
+    assert r["keeps_lattice"] is False and r["chosen"] == "fitted", r
+    # a query-path fit (no lattice: its cells are its look), a network fitted widened (the template cut at its
+    # small share makes wedges) and a fit already crisp are not compared
     assert _choose_for(crisp, shaped, method="query")["fits"] == {}
+    assert _choose_for(crisp, shaped, widened={"radius_px": 2})["fits"] == {}
     assert _choose_for(crisp, crisp)["fits"] == {}

@@ -106,6 +106,15 @@ class Lattice:
         d["period"] = self.period
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Lattice":
+        """Inverse of ``to_dict``."""
+        d = {k: v for k, v in d.items() if k in cls.__dataclass_fields__}
+        d["vectors"] = [tuple(float(x) for x in v) for v in d.get("vectors", [])]
+        if d.get("row_vector") is not None:
+            d["row_vector"] = tuple(float(x) for x in d["row_vector"])
+        return cls(**d)
+
 
 def autocorrelation(mask: np.ndarray) -> np.ndarray:
     """Periodic autocorrelation of a mask, normalised to 1 at lag 0, fftshifted (lag 0 at (h // 2, w // 2))."""

@@ -337,12 +337,17 @@ GATE_SHIFTS = ((53.3, 29.9), (17.7, 71.1))
 def _shows_lattice(loss: GramMaskLoss, lat: Lattice, params: np.ndarray, complement: bool, shift) -> bool:
     """Whether one render of `params` has the target's lattice (GATE_PERIOD, GATE_ANGLE): for a target of rows
     the render's rows next to the target's (``lattice.compare_rows``), else the render's own analysis."""
-    m = loss.render(params, complement, True, shift=shift)
-    if m.all() or not m.any():          # a uniform render
+    return mask_shows_lattice(loss.render(params, complement, True, shift=shift), lat, params)
+
+
+def mask_shows_lattice(mask: np.ndarray, lat: Lattice, params: np.ndarray) -> bool:
+    """Whether a render ``mask`` of ``params`` has the lattice ``lat`` (GATE_PERIOD, GATE_ANGLE): for rows the
+    render's rows next to them (``lattice.compare_rows``), else the render's own analysis."""
+    if mask.all() or not mask.any():          # a uniform render
         return False
     if lat.kind == "rows":
-        return _close(compare_rows(lat, m))
-    seen = analyse_lattice(m)
+        return _close(compare_rows(lat, mask))
+    seen = analyse_lattice(mask)
     return _close(compare_lattices(lat, seen)) or _near_lattices_agree(lat, seen, params)
 
 

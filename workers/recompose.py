@@ -42,8 +42,10 @@ from tqdm import tqdm
 from pptbf_db.features import GramExtractor, ssim
 
 from . import graph as G
+from .assemble import graph_id
 from .errors import InputError
-from .lattice import template_cells
+from .lattice import Lattice, template_cells
+from .layout_fit import mask_shows_lattice
 from .render import paper_lights, random_lights, render, tonemap
 from .torch_graph import TorchGraph
 
@@ -339,17 +341,36 @@ def evaluation_loss(material: G.ProceduralMaterial, target: Any, config: Recompo
         return float(loss_fn(tg.forward(_initial_values(tg, device)), None))
 
 
+def _keeps_layout(material: G.ProceduralMaterial, node: str, fit: Mapping) -> bool:
+    """Whether the mask of tree node ``node`` in ``material`` (its ``pptbf`` node at the working size) shows the
+    lattice its fit was made for (``meta["lattice"]``, at the fit's size): crisp cells that lose the layout are
+    no choice, whatever the material's loss says."""
+    meta = fit.get("meta", {})
+    if not meta.get("lattice"):
+        return True
+    w, h = material.working_size
+    lat = Lattice.from_dict(meta["lattice"]).scaled(w / float(fit["fit_size"][0]))
+    ctx = G.EvalContext(width=w, height=h, seed=material.seed, working_size=tuple(material.working_size))
+    params = material.node(graph_id("mask", node))["params"]["params"]
+    m = G.evaluate_node(material, graph_id("mask", node), ctx)[..., 0] > 0.5
+    return mask_shows_lattice(m, lat, np.asarray(params, dtype=np.float64))
+
+
 def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial], fits: Mapping[str, Mapping],
                  target: Any, config: RecomposeConfig | None = None) -> tuple[G.ProceduralMaterial, dict]:
     """The assembled material (``build(fits)``) with, for each mask fitted on a lattice whose cells the fit shaped
     (window, features, jitter, distortion), the crisp template's cells (``lattice.template_cells``: same layout
-    and threshold) where the material's evaluation loss prefers them; and a report of the losses compared.
+    and threshold) where they keep the fit's lattice and the material's evaluation loss prefers them; and a
+    report of the losses compared.
 
     A mask fit judges cells against the decomposition's mask, which is ragged where a threshold cut the relief's
     bevels and grain; cells shaped to copy that raggedness score better on the mask and worse on the material:
     metal_plate_02 at 256 px came back as barrel-shaped plates in wavy courses (mask loss 0.22 against 0.36 for
     the crisp cells), while with the crisp cells every map but the roughness is nearer the input (VGG-19 Gram over
     the input's halves: normal 6.62 -> 6.08, height 4.07 -> 3.86, albedo 1.45 -> 1.39, render 1.70 -> 1.64).
+    Not for a network fitted widened (``masks``: under 10 % of the pixels): the template's field cut at such a
+    share gathers its white into wedges at the junctions, the lines between them a pixel or less (metal_plate_02
+    at 512 px, 10 % seams: straight courses but wedges, though the material's loss preferred them, 1.26 -> 1.21).
     Greedy, one fit at a time in node order; ``fits`` maps node id -> {"fit": MaskFit dict, ...}."""
     fits = dict(fits)
     material = build(fits)
@@ -357,17 +378,20 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
     report: dict[str, Any] = {"loss": best, "fits": {}}
     for node in sorted(fits):
         fit = fits[node].get("fit", {})
-        if fit.get("meta", {}).get("method") != "lattice":
+        if fit.get("meta", {}).get("method") != "lattice" or fit["meta"].get("widened"):
             continue
         crisp = template_cells(fit["params"])
         if np.allclose(crisp, np.asarray(fit["params"], dtype=np.float64)):
             continue
         trial = {**fits, node: {**fits[node], "fit": {**fit, "params": crisp.tolist()}}}
         trial_material = build(trial)
-        loss = evaluation_loss(trial_material, target, config)
+        layout = _keeps_layout(trial_material, node, fit)
+        loss = evaluation_loss(trial_material, target, config) if layout else math.inf
         chosen = "template" if loss < best else "fitted"
-        report["fits"][node] = {"fitted": best, "template": loss, "chosen": chosen}
-        logger.info("recompose: mask %s, fitted cells %.4f, template cells %.4f: %s", node, best, loss, chosen)
+        report["fits"][node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
+                                "chosen": chosen}
+        logger.info("recompose: mask %s, fitted cells %.4f, template cells %s: %s", node, best,
+                    f"{loss:.4f}" if layout else "lose the lattice", chosen)
         if chosen == "template":
             fits, material, best = trial, trial_material, loss
     report["loss"] = best
