@@ -351,9 +351,9 @@ def _keeps_layout(material: G.ProceduralMaterial, node: str, fit: Mapping) -> bo
     w, h = material.working_size
     lat = Lattice.from_dict(meta["lattice"]).scaled(w / float(fit["fit_size"][0]))
     ctx = G.EvalContext(width=w, height=h, seed=material.seed, working_size=tuple(material.working_size))
-    params = material.node(graph_id("mask", node))["params"]["params"]
-    m = G.evaluate_node(material, graph_id("mask", node), ctx)[..., 0] > 0.5
-    return mask_shows_lattice(m, lat, np.asarray(params, dtype=np.float64))
+    nid = graph_id("mask", node)
+    m = G.evaluate_node(material, nid, ctx)[..., 0] > 0.5
+    return mask_shows_lattice(m, lat, np.asarray(material.node(nid)["params"]["params"], dtype=np.float64))
 
 
 def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial], fits: Mapping[str, Mapping],
@@ -372,10 +372,9 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
     share gathers its white into wedges at the junctions, the lines between them a pixel or less (metal_plate_02
     at 512 px, 10 % seams: straight courses but wedges, though the material's loss preferred them, 1.26 -> 1.21).
     Greedy, one fit at a time in node order; ``fits`` maps node id -> {"fit": MaskFit dict, ...}."""
-    fits = dict(fits)
     material = build(fits)
     best = evaluation_loss(material, target, config)
-    report: dict[str, Any] = {"loss": best, "fits": {}}
+    compared: dict[str, dict] = {}
     for node in sorted(fits):
         fit = fits[node].get("fit", {})
         if fit.get("meta", {}).get("method") != "lattice" or fit["meta"].get("widened"):
@@ -388,14 +387,13 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
         layout = _keeps_layout(trial_material, node, fit)
         loss = evaluation_loss(trial_material, target, config) if layout else math.inf
         chosen = "template" if loss < best else "fitted"
-        report["fits"][node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
+        compared[node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
                                 "chosen": chosen}
         logger.info("recompose: mask %s, fitted cells %.4f, template cells %s: %s", node, best,
                     f"{loss:.4f}" if layout else "lose the lattice", chosen)
         if chosen == "template":
             fits, material, best = trial, trial_material, loss
-    report["loss"] = best
-    return material, report
+    return material, {"loss": best, "fits": compared}
 
 
 def _optimise(material: G.ProceduralMaterial, target: Any, cfg: RecomposeConfig) -> RecomposeResult:
