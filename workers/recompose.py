@@ -44,7 +44,7 @@ from pptbf_db.features import GramExtractor, ssim
 from . import graph as G
 from .assemble import graph_id
 from .errors import InputError
-from .lattice import Lattice, template_cells
+from .lattice import STRAIGHT_CELLS, Lattice, template_cells
 from .layout_fit import mask_shows_lattice
 from .render import paper_lights, random_lights, render, tonemap
 from .torch_graph import TorchGraph
@@ -356,12 +356,19 @@ def _keeps_layout(material: G.ProceduralMaterial, node: str, fit: Mapping) -> bo
     return mask_shows_lattice(m, lat, np.asarray(material.node(nid)["params"]["params"], dtype=np.float64))
 
 
+#: how much lower the evaluation loss of the straight cells must be for the material to take them: the loss is
+#: the assembled graph's, before the optimisation adapts the filters to either; smaller gains did not survive it
+#: (the README roof: 6.481 against 6.501 before, then VGG-19 Gram / floor albedo 3.87 -> 4.21, normal
+#: 5.16 -> 5.88 after, the picture unchanged; the README metal's plates: 1.389 against 1.427, normal 5.93 -> 5.52)
+CELLS_MARGIN = 0.01
+
+
 def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial], fits: Mapping[str, Mapping],
                  target: Any, config: RecomposeConfig | None = None) -> tuple[G.ProceduralMaterial, dict]:
     """The assembled material (``build(fits)``) with, for each mask fitted on a lattice whose cells the fit shaped
-    (window, features, jitter, distortion), the crisp template's cells (``lattice.template_cells``: same layout
-    and threshold) where they keep the fit's lattice and the material's evaluation loss prefers them; and a
-    report of the losses compared.
+    (window, features, jitter, distortion) or left rounded (the fit's starting template), crisp cells with straight
+    borders (``lattice.template_cells`` with ``STRAIGHT_CELLS``: same layout and threshold) where they keep the
+    fit's lattice and the material's evaluation loss prefers them; and a report of the losses compared.
 
     A mask fit judges cells against the decomposition's mask, which is ragged where a threshold cut the relief's
     bevels and grain; cells shaped to copy that raggedness score better on the mask and worse on the material:
@@ -369,8 +376,10 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
     the crisp cells), while with the crisp cells every map but the roughness is nearer the input (VGG-19 Gram over
     the input's halves: normal 6.62 -> 6.08, height 4.07 -> 3.86, albedo 1.45 -> 1.39, render 1.70 -> 1.64).
     Not for a network fitted widened (``masks``: under 10 % of the pixels): the template's field cut at such a
-    share gathers its white into wedges at the junctions, the lines between them a pixel or less (metal_plate_02
-    at 512 px, 10 % seams: straight courses but wedges, though the material's loss preferred them, 1.26 -> 1.21).
+    share does not make even lines: with 16 border sectors it gathered the white into wedges at the junctions
+    (metal_plate_02 at 512 px, 10 % seams, though the material's loss preferred them, 1.26 -> 1.21), with 64 the
+    seams across the cells' short sides are hairlines (the field is the cell scaled about its point, so a seam's
+    width follows the side's distance from it).
     Greedy, one fit at a time in node order; ``fits`` maps node id -> {"fit": MaskFit dict, ...}."""
     material = build(fits)
     best = evaluation_loss(material, target, config)
@@ -379,14 +388,14 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
         fit = fits[node].get("fit", {})
         if fit.get("meta", {}).get("method") != "lattice" or fit["meta"].get("widened"):
             continue
-        crisp = template_cells(fit["params"])
+        crisp = template_cells(fit["params"], STRAIGHT_CELLS)
         if np.allclose(crisp, np.asarray(fit["params"], dtype=np.float64)):
             continue
         trial = {**fits, node: {**fits[node], "fit": {**fit, "params": crisp.tolist()}}}
         trial_material = build(trial)
         layout = _keeps_layout(trial_material, node, fit)
         loss = evaluation_loss(trial_material, target, config) if layout else math.inf
-        chosen = "template" if loss < best else "fitted"
+        chosen = "template" if loss < (1.0 - CELLS_MARGIN) * best else "fitted"
         compared[node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
                                 "chosen": chosen}
         logger.info("recompose: mask %s, fitted cells %.4f, template cells %s: %s", node, best,
