@@ -375,9 +375,9 @@ def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", 
 
 
 def test_lattice_masks_take_the_crisp_cells_where_the_material_prefers_them():
-    """A lattice mask fit whose cells copy the decomposition's raggedness is replaced by the crisp template's
-    cells (same layout and threshold) when they keep the fit's lattice and the material's evaluation loss says
-    so, and only then."""
+    """A lattice mask fit whose cells copy the decomposition's raggedness is replaced by crisp cells with
+    straight borders (same layout and threshold) when they keep the fit's lattice and the material's evaluation
+    loss says so, and only then."""
     from workers.lattice import STRAIGHT_CELLS, template_cells
 
     crisp, shaped = _plate_layouts()
