@@ -917,8 +917,8 @@ def _round_robin(matches: list[LatticeMatch], per_round: int = 2) -> list[Lattic
 #: corners with chords: octagons with bowed sides (metal_plate_02's plates came back as barrels). A mask fit
 #: prefers the rounder cells (the decomposition's masks are ragged: started from 64-sector cells, the README
 #: roof's fit left the network for white cell centres, validation loss 1.05, where from 16 it kept it, 0.96), the
-#: material the straight ones
-#: (``recompose.choose_cells``), so the fit starts from CELL_TEMPLATE and the material is offered STRAIGHT_CELLS.
+#: material the straight ones (``recompose.choose_cells``), so the fit starts from CELL_TEMPLATE and the
+#: material is offered STRAIGHT_CELLS.
 STRAIGHT_CELLS: dict[str, float] = {**CELL_TEMPLATE, "window_arity": 6.0}
 
 

@@ -373,8 +373,9 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
     A mask fit judges cells against the decomposition's mask, which is ragged where a threshold cut the relief's
     bevels and grain; cells shaped to copy that raggedness score better on the mask and worse on the material:
     metal_plate_02 at 256 px came back as barrel-shaped plates in wavy courses (mask loss 0.22 against 0.36 for
-    the crisp cells), while with the crisp cells every map but the roughness is nearer the input (VGG-19 Gram over
-    the input's halves: normal 6.62 -> 6.08, height 4.07 -> 3.86, albedo 1.45 -> 1.39, render 1.70 -> 1.64).
+    the 16-sector crisp cells), while with those every map but the roughness is nearer the input (VGG-19 Gram
+    over the input's halves: normal 6.62 -> 6.08, height 4.07 -> 3.86, albedo 1.45 -> 1.39, render 1.70 -> 1.64),
+    and with the straight ones the normal nearer still (5.93 -> 5.52).
     Not for a network fitted widened (``masks``: under 10 % of the pixels): the template's field cut at such a
     share does not make even lines: with 16 border sectors it gathered the white into wedges at the junctions
     (metal_plate_02 at 512 px, 10 % seams, though the material's loss preferred them, 1.26 -> 1.21), with 64 the
@@ -397,7 +398,7 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
         loss = evaluation_loss(trial_material, target, config) if layout else math.inf
         chosen = "template" if loss < (1.0 - CELLS_MARGIN) * best else "fitted"
         compared[node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
-                                "chosen": chosen}
+                          "chosen": chosen}
         logger.info("recompose: mask %s, fitted cells %.4f, template cells %s: %s", node, best,
                     f"{loss:.4f}" if layout else "lose the lattice", chosen)
         if chosen == "template":
