@@ -401,7 +401,7 @@ def test_lattice_masks_take_the_crisp_cells_where_the_material_prefers_them():
     # small share makes wedges) and a fit already crisp are not compared
     assert _choose_for(crisp, shaped, method="query")["fits"] == {}
     assert _choose_for(crisp, shaped, widened={"radius_px": 2})["fits"] == {}
-    assert _choose_for(crisp, crisp)["fits"] == {}
+    assert "chosen" not in _choose_for(crisp, crisp)["fits"]["root.0"]
 
 
 def test_rounded_template_cells_give_way_to_straight_ones_on_straight_plates():
@@ -418,3 +418,28 @@ def test_rounded_template_cells_give_way_to_straight_ones_on_straight_plates():
     r = out["fits"]["root.0"]
     assert r["chosen"] == "template" and r["keeps_lattice"] and r["template"] < r["fitted"], r
     assert out["params"][pp.PARAM_INDEX["window_arity"]] == STRAIGHT_CELLS["window_arity"]
+
+
+def test_a_lattice_network_fitted_too_wide_is_cut_thinner_where_the_material_prefers_it():
+    """Plates with 6 % seams whose split was fitted at a structure cut's 25 %: the same cells cut thinner (the
+    network at 60 % or 35 % of its share) are nearer the material, and taken; plates whose seams are the fitted
+    25 % keep them; and a smaller phase that is not one network (the cells' centres) is not cut thinner."""
+    from pptbf_db import pptbf as pp
+
+    wide, _ = _plate_layouts()
+    wide[pp.PARAM_INDEX["threshold"]] = 0.75           # with the complement: the seams, 25 % of the pixels
+    thin = wide.copy()
+    thin[pp.PARAM_INDEX["threshold"]] = 0.94
+    out = _choose_for(thin, wide)
+    r = out["fits"]["root.0"]["network"]
+    print("thin seams:", r)
+    assert r.get("chosen") in ("x0.6", "x0.35"), r
+    chosen = r[r["chosen"]]
+    assert chosen[1] < 0.99 * r["fitted"][1] and out["loss"] == chosen[1]
+    assert 1.0 - out["params"][0] == pytest.approx(chosen[0], abs=1e-6)     # the seams' share
+    r = _choose_for(wide, wide)["fits"]["root.0"]["network"]
+    print("seams as fitted:", r)
+    assert "chosen" not in r and all(v[1] > r["fitted"][1] for k, v in r.items() if k != "fitted"), r
+    blobs, _ = _plate_layouts()                         # white: 75 % around 25 % cell centres
+    r = _choose_for(blobs, blobs)["fits"]["root.0"]["network"]
+    assert "chosen" not in r and all(v[1] is None for k, v in r.items() if k != "fitted"), r

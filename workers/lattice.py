@@ -307,6 +307,19 @@ def _rows_vector(ac: np.ndarray, prof: np.ndarray, cand: np.ndarray, cfg: Lattic
     return best, score
 
 
+#: a phase is one connected network when its largest connected piece holds this share of its pixels
+NETWORK_PIECE_SHARE = 0.8
+
+
+def largest_piece_share(mask: np.ndarray) -> float:
+    """The share of a bool mask's white pixels in its largest (4-connected) piece; 0 when empty."""
+    lab, n = ndimage.label(mask)
+    if n == 0:
+        return 0.0
+    sizes = np.bincount(lab.ravel())[1:]
+    return float(sizes.max() / sizes.sum())
+
+
 def _network(mask: np.ndarray) -> tuple[float | None, bool | None]:
     """Width (px) and polarity of the phase that forms one connected network (mortar); (None, None) if neither."""
     from skimage.morphology import skeletonize
@@ -320,7 +333,7 @@ def _network(mask: np.ndarray) -> tuple[float | None, bool | None]:
         sizes = np.bincount(lab.ravel())[1:]
         share = sizes.max() / max(1, sizes.sum())
         other_lab, n_other = ndimage.label(~m)
-        if share >= 0.8 and n_other >= 4:
+        if share >= NETWORK_PIECE_SHARE and n_other >= 4:
             sk = skeletonize(m)
             dist = ndimage.distance_transform_edt(m)
             width = float(2.0 * np.median(dist[sk])) if sk.any() else None
