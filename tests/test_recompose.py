@@ -345,7 +345,7 @@ def _plate_layouts() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", size: int = 128,
-                **meta) -> dict:
+                thinner: bool = True, **meta) -> dict:
     """choose_cells' report on plates (cells of ``truth``, dark seams) whose split's fit is ``fitted``."""
     from pptbf_db import pptbf as pp
     from workers import noise as N
@@ -369,7 +369,8 @@ def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", 
     noises = {(c.id, "albedo"): N.fit_noise(albedo, c.mask).to_params() for c in tree.children}
     mat = Material(albedo=albedo, name="plates")
     proc, report = choose_cells(lambda f: build_material(mat, tree, noises, f, seed=0),
-                                {"root.0": {"fit": fit.to_dict()}}, mat, RecomposeConfig())
+                                {"root.0": {"fit": fit.to_dict()}}, mat, RecomposeConfig(),
+                                thinner=("root.0",) if thinner else ())
     report["params"] = proc.node("mask_root_0")["params"]["params"]
     return report
 
@@ -440,6 +441,7 @@ def test_a_lattice_network_fitted_too_wide_is_cut_thinner_where_the_material_pre
     r = _choose_for(wide, wide)["fits"]["root.0"]["network"]
     print("seams as fitted:", r)
     assert "chosen" not in r and all(v[1] > r["fitted"][1] for k, v in r.items() if k != "fitted"), r
+    assert "network" not in _choose_for(thin, wide, thinner=False)["fits"].get("root.0", {})   # not a band cut
     blobs, _ = _plate_layouts()                         # white: 75 % around 25 % cell centres
     r = _choose_for(blobs, blobs)["fits"]["root.0"]["network"]
     assert "chosen" not in r and all(v[1] is None for k, v in r.items() if k != "fitted"), r

@@ -17,6 +17,7 @@ from pptbf_db.index import PPTBFIndex, default_database_path
 from .assemble import build_material
 from .masks import fit_pptbf_mask
 from .recompose import RecomposeConfig, choose_cells, optimise
+from .structure import cut_is_band
 
 logger = logging.getLogger(__name__)
 
@@ -65,8 +66,9 @@ class Recomposer:
             proc = build_material(material, tree, noises, fits, seed, pieces)
             return proc, {"device": self.device, "iterations": 0, "seconds": time.perf_counter() - t0}
         cfg = RecomposeConfig.from_dict({"seed": seed, "device": self.device, **opts})
+        band = cut_is_band(tree.meta.get("structure")) and tree.children
         proc, cells = choose_cells(lambda f: build_material(material, tree, noises, f, seed, pieces), fits,
-                                   material, cfg)
+                                   material, cfg, thinner=(tree.children[0].id,) if band else ())
         res = optimise(proc, material, cfg)
         report = res.report()
         report["cells"] = cells

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -76,6 +76,18 @@ class StructureSplit:
 #: where a two-sided source shows a layout too (on layout-free relief, 16 more cuts find more chance lattices)
 ONE_SIDED = "slope"
 ONE_SIDED_MARGIN = 2.0
+
+
+#: sources whose cut is a band wider than the network: the normals' tilt is high on both bevels of a groove
+BAND_SOURCES = frozenset({"tilt"})
+
+
+def cut_is_band(structure: Mapping | None) -> bool:
+    """Whether a structural split (``StructureSplit.describe()``, as the decomposition's root records it) was cut
+    from a BAND_SOURCES map: its network is wider than the input's lines (workers.recompose cuts it thinner where
+    the material prefers)."""
+    source = str((structure or {}).get("source", ""))
+    return source.split(":")[-1] in BAND_SOURCES
 
 
 def _highpass(x: np.ndarray, sigma: float) -> np.ndarray:
