@@ -437,9 +437,10 @@ def _thinner_network(build: Callable[[Mapping[str, Mapping]], G.ProceduralMateri
     a fine groove's cut: loss 2.60 -> 2.28 at 19 %, VGG-19 Gram over the input's halves albedo 2.22 -> 2.92,
     normal 2.35 -> 2.76, roughness 2.43 -> 2.98, height 3.52 -> 2.42).
     A thinner cut must keep the network in one piece (NETWORK_PIECE_SHARE): the cells' short sides thin out
-    first, and the README roof's slates, cut at 60 % of their joints' share, lost the joints (537 pieces, the
-    largest 1.5 % of the network) where the evaluation loss still preferred them (the albedo's VGG-19 Gram over
-    the input's halves 3.87 -> 6.41)."""
+    first; offered a thinner cut (before the offer was kept for bands: the roof's is a one-sided slope's), the
+    README roof's slates at 60 % of their network's share lost their joints (537 pieces, the largest 1.5 % of
+    the network) where the evaluation loss still preferred them (the albedo's VGG-19 Gram over the input's halves
+    3.87 -> 6.41)."""
     fit = fits[node].get("fit", {})
     meta = fit.get("meta", {})
     if meta.get("method") != "lattice" or meta.get("widened"):
