@@ -66,9 +66,10 @@ class Recomposer:
             proc = build_material(material, tree, noises, fits, seed, pieces)
             return proc, {"device": self.device, "iterations": 0, "seconds": time.perf_counter() - t0}
         cfg = RecomposeConfig.from_dict({"seed": seed, "device": self.device, **opts})
-        band = cut_is_band(tree.meta.get("structure")) and tree.children
+        band = tree.children and cut_is_band(tree.meta.get("structure"))
+        thinner = (tree.children[0].id,) if band else ()        # the structural split's network
         proc, cells = choose_cells(lambda f: build_material(material, tree, noises, f, seed, pieces), fits,
-                                   material, cfg, thinner=(tree.children[0].id,) if band else ())
+                                   material, cfg, thinner=thinner)
         res = optimise(proc, material, cfg)
         report = res.report()
         report["cells"] = cells

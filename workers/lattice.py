@@ -327,13 +327,8 @@ def _network(mask: np.ndarray) -> tuple[float | None, bool | None]:
     out = []
     for white in (True, False):
         m = mask if white else ~mask
-        lab, n = ndimage.label(m)
-        if n == 0:
-            continue
-        sizes = np.bincount(lab.ravel())[1:]
-        share = sizes.max() / max(1, sizes.sum())
-        other_lab, n_other = ndimage.label(~m)
-        if share >= NETWORK_PIECE_SHARE and n_other >= 4:
+        _, n_other = ndimage.label(~m)
+        if largest_piece_share(m) >= NETWORK_PIECE_SHARE and n_other >= 4:
             sk = skeletonize(m)
             dist = ndimage.distance_transform_edt(m)
             width = float(2.0 * np.median(dist[sk])) if sk.any() else None

@@ -341,17 +341,17 @@ def evaluation_loss(material: G.ProceduralMaterial, target: Any, config: Recompo
         return float(loss_fn(tg.forward(_initial_values(tg, device)), None))
 
 
-def _keeps_layout(material: G.ProceduralMaterial, node: str, fit: Mapping) -> bool:
+def _keeps_layout(material: G.ProceduralMaterial, node: str, fit: Mapping, mask: np.ndarray | None = None) -> bool:
     """Whether the mask of tree node ``node`` in ``material`` (its ``pptbf`` node at the working size) shows the
     lattice its fit was made for (``meta["lattice"]``, at the fit's size): crisp cells that lose the layout are
-    no choice, whatever the material's loss says."""
+    no choice, whatever the material's loss says. ``mask``: that mask when the caller rendered it already."""
     meta = fit.get("meta", {})
     if not meta.get("lattice"):
         return True
     w = material.working_size[0]
     lat = Lattice.from_dict(meta["lattice"]).scaled(w / float(fit["fit_size"][0]))
     nid = graph_id("mask", node)
-    return mask_shows_lattice(_node_mask(material, node), lat,
+    return mask_shows_lattice(_node_mask(material, node) if mask is None else mask, lat,
                               np.asarray(material.node(nid)["params"]["params"], dtype=np.float64))
 
 
@@ -460,7 +460,7 @@ def _thinner_network(build: Callable[[Mapping[str, Mapping]], G.ProceduralMateri
         trial_material = build(trial)
         mask = _node_mask(trial_material, node)
         whole = largest_piece_share(mask if net_white else ~mask) >= NETWORK_PIECE_SHARE
-        layout = whole and _keeps_layout(trial_material, node, fit)
+        layout = whole and _keeps_layout(trial_material, node, fit, mask)
         loss = evaluation_loss(trial_material, target, config) if layout else math.inf
         report["network"][f"x{k}"] = [round(float(k * share), 4), loss if layout else None]
         if loss < (1.0 - CELLS_MARGIN) * best:
