@@ -1360,9 +1360,48 @@ def shade(x, y, ps: PixelStructure, P: PointTable, d: Decoded, K: KernelTable | 
     return np.maximum(V, 0.0)
 
 
+#: sectors on either side of a pixel's own whose polygon sides the border distance also measures (see
+#: border_distance): a pixel within w of a side sees it within asin(w / r) of its own direction from the point
+BORDER_FAN = 3
+
+
+def border_distance(x, y, ps: PixelStructure, st: Structure, d: Decoded, zoom: float,
+                    memo: BorderMemo | None = None) -> np.ndarray:
+    """Distance (in reference widths, inside > 0) from each pixel to the border of its closest point's cell: the
+    polygon through the cellular window's border points (the radii at the sector rays), measured in the image.
+
+    The cellular window's coordinate is the cell scaled about its point (``cellular_cv``): cut at one level, the
+    band it leaves along a side is as wide as that side's distance from the point, so the bed joints of bricks
+    twice as long as high came out half as wide as the head joints. Cut at one level, this distance leaves a
+    band of one width along every side. The sides measured are those of the pixel's sector and BORDER_FAN
+    sectors either side (a pixel near a corner is nearer the other side than its own), each side's distance
+    taken through the domain's rotation and aspect (distortion is not followed: crisp cells have none), the
+    smallest kept. Needs the cellular window (``uses_cellular``)."""
+    P = st.points
+    p0 = ps.nbr[..., 0]
+    p0x, p0y = P.px[p0], P.py[p0]
+    rot = d.delta * P.rot_u[p0]
+    j = ps.ka[..., None] + np.arange(-BORDER_FAN, BORDER_FAN + 2)
+    pending: list = []
+    rho, _ = _border_queries(p0, np.mod(j, d.n_sectors), st, d, False, memo, pending)
+    if memo is not None:
+        memo.publish(pending)
+    t = j * d.delta + rot[..., None]
+    vx, vy = p0x[..., None] + rho * _cos(t), p0y[..., None] + rho * _sin(t)
+    ex, ey = vx[..., 1:] - vx[..., :-1], vy[..., 1:] - vy[..., :-1]            # sides, counter-clockwise
+    cross = ex * (y[..., None] - vy[..., :-1]) - ey * (x[..., None] - vx[..., :-1])   # > 0 inside
+    scale = zoom * np.hypot(ey / d.aspect, ex)      # |J^T e_perp|: domain -> image distance across the side
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dist = np.where(scale > 0.0, cross / scale, np.inf)
+    return dist.min(-1)
+
+
 # --------------------------------------------------------------------------------------------------------------
 # Public API
 # --------------------------------------------------------------------------------------------------------------
+
+#: what ``evaluate`` returns per pixel: the PPTBF value V, or the distance to the cell's border
+FIELDS = ("value", "border")
 
 CHUNK_ELEMS = 1 << 19   # measured: smaller chunks are faster (cache), 2^19..2^20 best
 
@@ -1404,8 +1443,10 @@ def default_threads() -> int:
 
 
 def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,
-             ref_width: int | None = None, threads: int | None = None, cells: bool = False):
-    """Raw PPTBF V (H, W) float32.
+             ref_width: int | None = None, threads: int | None = None, cells: bool = False,
+             field: str = "value"):
+    """Raw PPTBF V (H, W) float32 (``field="border"``: instead the distance to the cell's border,
+    :func:`border_distance`, for cellular windows).
 
     `ref_width` is the width at which the parameters are defined (default: width): the period is
     int(resolution) * pixel_scale pixels whatever the output width, so a larger width extends the pattern and
@@ -1415,8 +1456,13 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
     ``cells``: also return each pixel's cell key (H, W) int64, the :func:`cell_keys` of its closest point.
     """
     threads = default_threads() if threads is None else max(1, int(threads))
+    if field not in FIELDS:
+        raise ValueError(f"PPTBF field must be one of {', '.join(FIELDS)}, got {field!r}")
     d, zoom, x, y, st = prepare(params, width, height, shift=shift, pixel_scale=pixel_scale, ref_width=ref_width,
                                 threads=threads)
+    border = field == "border"
+    if border and not uses_cellular(d):
+        raise ValueError("the PPTBF border field needs the cellular window (window_blend > 0, a windowed mixture)")
     out = np.empty(x.shape, dtype=np.float32)
     keys = np.empty(x.shape, dtype=np.int64) if cells else None
     K = kernel_table(st.points, d)
@@ -1428,6 +1474,9 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
         ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d, memo=memo)
         if keys is not None:
             keys[sl] = st.points.cell[ps.nbr[..., 0]]
+        if border:
+            out[sl] = border_distance(x[sl], y[sl], ps, st, d, zoom, memo)
+            return
         for s0 in range(0, ps.nbr.shape[0], sub):
             s1 = slice(s0, s0 + sub)
             out[r0 + s0:r0 + s0 + sub] = shade(x[sl][s1], y[sl][s1], ps.rows(s1), st.points, d, K)
@@ -1443,20 +1492,56 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
     return (out, keys) if cells else out
 
 
-def binarize(values: np.ndarray, threshold: float) -> np.ndarray:
-    """Percentile threshold (spec §3): white = V > quantile(V, 1 - T), so T ~ white fraction; non-finite -> 0."""
+#: for the border field: the cut moves into a gap between values at least this wide (reference widths), by at
+#: most GAP_SHARE of the pixels (see cut_level: on straight cells one side of every cell in a row of cells has
+#: one distance, a few % of the pixels)
+BORDER_GAP = 1e-5
+GAP_SHARE = 0.05
+
+
+def cut_level(values: np.ndarray, threshold: float, gap: float = 0.0) -> float:
+    """The level ``binarize`` cuts at: quantile(V, 1 - T) over the finite values (inf when there are none).
+
+    With ``gap`` > 0, the middle of the nearest gap between consecutive values at least ``gap`` wide, within
+    GAP_SHARE of the pixels of that quantile (the quantile itself where there is none). A crisp cell's border
+    distance is nearly one value along a whole side (within 1e-7), and along the same side of every cell in a row
+    of straight cells, so the quantile falls inside such a cluster and a float32 shader put part of a side on
+    either side of it (a running bond: 99.3 % of pixels equal numpy's); a cut in a gap keeps every side whole in
+    both, at a share that can differ from T by such a cluster."""
+    v = np.asarray(values, dtype=np.float64)
+    finite = np.sort(v[np.isfinite(v)], axis=None)
+    if not finite.size:
+        return float("inf")
+    q = min(max(1.0 - float(threshold), 0.0), 1.0)
+    cut = float(np.quantile(finite, q))
+    if gap <= 0.0 or finite.size < 2:
+        return cut
+    k = int(np.searchsorted(finite, cut, side="right")) - 1          # the last value <= cut
+    reach = max(1, int(GAP_SHARE * finite.size))
+    lo, hi = max(0, k - reach), min(finite.size - 1, k + reach)
+    steps = np.diff(finite[lo:hi + 1])
+    wide = np.nonzero(steps >= gap)[0]
+    if not wide.size:
+        return cut
+    j = lo + wide[np.argmin(np.abs(lo + wide - k))]
+    return 0.5 * (finite[j] + finite[j + 1])
+
+
+def binarize(values: np.ndarray, threshold: float, gap: float = 0.0) -> np.ndarray:
+    """Percentile threshold (spec §3): white = V > quantile(V, 1 - T), so T ~ white fraction; non-finite -> 0.
+    ``gap``: the cut is moved into a gap between values (:func:`cut_level`)."""
     v = np.asarray(values, dtype=np.float64)
     finite = np.isfinite(v)
     if not finite.any():
         return np.zeros(v.shape, dtype=bool)
-    cut = np.quantile(v[finite], min(max(1.0 - float(threshold), 0.0), 1.0))
-    return finite & (np.where(finite, v, -np.inf) > cut)
+    return finite & (np.where(finite, v, -np.inf) > cut_level(v, threshold, gap))
 
 
 def render_mask(params, width: int, height: int | None = None, **kw) -> np.ndarray:
     """Binary PPTBF mask: evaluate then binarize with the vector's own threshold (entry 0)."""
     p = _as_params(params)
-    return binarize(evaluate(p, width, height, **kw), p[0])
+    gap = BORDER_GAP if kw.get("field") == "border" else 0.0
+    return binarize(evaluate(p, width, height, **kw), p[0], gap)
 
 
 def evaluate_torch(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,

@@ -41,12 +41,12 @@ def noise_model():
     return fit_noise(img, None)
 
 
-def bricks(noise_model, sigma: float = 0.0, input_size=(256, 256)) -> G.ProceduralMaterial:
-    """Mortar (a PPTBF running bond) and bricks (its complement): noise albedo, level-filtered roughness, a height
-    step (optionally blurred by the blend), normals from the height."""
+def bricks(noise_model, sigma: float = 0.0, input_size=(256, 256), field: str = "value") -> G.ProceduralMaterial:
+    """Mortar (a PPTBF running bond, cut on ``field``) and bricks (its complement): noise albedo, level-filtered
+    roughness, a height step (optionally blurred by the blend), normals from the height."""
     mat = G.new_material(seed=5, working_size=(SIZE, SIZE))
     mat.input_size = input_size
-    mat.add("mortar", "pptbf", {"params": bond_params(), "ref_width": SIZE, "complement": True})
+    mat.add("mortar", "pptbf", {"params": bond_params(), "ref_width": SIZE, "complement": True, "field": field})
     mat.add("bricks", "level", {"a": -1.0, "d": 1.0, "clamp": True}, input="mortar")
     mat.add("n_mortar", "noise", noise_params(noise_model, seed=1))
     mat.add("n_brick", "noise", noise_params(noise_model, seed=2))
@@ -98,10 +98,11 @@ def export(mat, folder: Path, name="bricks", **kw):
 
 
 @needs_gl
-def test_procedural_graph_renders_like_proceduralize(noise_model, tmp_path):
+@pytest.mark.parametrize("field", pp.FIELDS)
+def test_procedural_graph_renders_like_proceduralize(noise_model, tmp_path, field):
     from workers.mtlx.check import compare
 
-    mat = bricks(noise_model)
+    mat = bricks(noise_model, field=field)
     doc, g = export(mat, tmp_path)
     assert sorted(g.baked) == ["n_brick", "n_mortar"] and g.fixed == [] and g.pinned == []
     maps = G.evaluate(mat, SIZE, SIZE)

@@ -488,3 +488,41 @@ def test_contact_sheet(artifacts_dir):
     out.mkdir(parents=True, exist_ok=True)
     io.imsave(out / "contact_sheet.png", (sheet * 255).round().astype(np.uint8), check_contrast=False)
     assert (out / "contact_sheet.png").stat().st_size > 10_000
+
+
+def _run_lengths(mask: np.ndarray, axis: int) -> np.ndarray:
+    """Lengths of the white runs of a bool image along ``axis`` (0: down the columns)."""
+    m = np.moveaxis(mask, axis, -1).astype(np.int8)
+    edges = np.diff(np.pad(m, [(0, 0), (1, 1)]), axis=-1)
+    return np.nonzero(edges == -1)[1] - np.nonzero(edges == 1)[1]
+
+
+@pytest.mark.parametrize("aspect", [0.5, 2.0])
+def test_border_field_cuts_a_network_of_one_width(aspect):
+    """Crisp bricks twice as long as high (or tall): cut at 15 % of the pixels, the PPTBF value leaves joints as
+    wide as each side's distance from the cell's point (one direction about twice the other), the border distance
+    joints of one width in both directions (within a pixel), at the same share and on the same cells."""
+    from workers.lattice import STRAIGHT_CELLS, template_cells
+
+    p = template_cells(np.zeros(pp.N_PARAMS), STRAIGHT_CELLS)
+    for k, v in {"tiling": 4.0, "resolution": 48.0, "aspect_ratio": aspect, "threshold": 0.85}.items():
+        p[pp.PARAM_INDEX[k]] = v
+    widths = {}
+    for field in pp.FIELDS:
+        net = ~pp.render_mask(p, 256, 256, shift=(1.3, 2.1), field=field)
+        across_rows, across_cols = _run_lengths(net, 0), _run_lengths(net, 1)   # joints crossed down / across
+        widths[field] = tuple(float(np.median(r[r < 15])) for r in (across_rows, across_cols))
+        assert abs(net.mean() - 0.15) < 0.02     # the border field's cut sits between two sides' distances
+    print(f"aspect {aspect}: (horizontal joints, vertical joints) px: {widths}")
+    value, border = widths["value"], widths["border"]
+    assert max(value) >= 1.7 * min(value)
+    assert abs(border[0] - border[1]) <= 1.0
+
+
+def test_border_field_needs_the_cellular_window():
+    p = np.array(pp.sample_params(np.random.default_rng(0), 1, ref_width=64)[0])
+    p[pp.PARAM_INDEX["window_blend"]] = 0.0
+    with pytest.raises(ValueError, match="cellular window"):
+        pp.evaluate(p, 32, 32, field="border")
+    with pytest.raises(ValueError, match="field"):
+        pp.evaluate(p, 32, 32, field="distance")

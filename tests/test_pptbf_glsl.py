@@ -88,3 +88,34 @@ def test_glsl_pptbf_follows_shift_and_scale():
     ref = pp.evaluate(params, W, W, shift=(1.5, 0.25), ref_width=2 * W)
     cut = float(np.quantile(ref, 0.5))
     assert np.mean((big > cut) == (ref > cut)) >= AGREEMENT
+
+
+def _crisp(tiling: int, aspect: float, rotation: float = 0.0, arity: float = 6.0) -> np.ndarray:
+    from workers.lattice import STRAIGHT_CELLS, template_cells
+
+    v = template_cells(np.zeros(pp.N_PARAMS), {**STRAIGHT_CELLS, "window_arity": arity})
+    return _with(v, tiling=tiling, resolution=W / 3.0, aspect_ratio=aspect, rotation=rotation)
+
+
+BORDER_CASES = {"running_bond": _crisp(4, 0.5), "square_tall": _crisp(0, 2.0), "herringbone": _crisp(10, 1.0),
+                "pythagorean_rotated": _crisp(14, 0.8, rotation=0.1),
+                "apavement_16_sectors": _crisp(16, 1.0, arity=4.0),
+                "cellular_larp0.5": _with(CASES["cellular_larp0.5_smooth0.0"], jitter=0.0)}
+
+
+@pytest.mark.parametrize("name", sorted(BORDER_CASES))
+def test_glsl_pptbf_border_distance_matches_numpy(name):
+    """The border field (pptbf_border, the pptbf node's ``border`` input) equals numpy's to float32 precision
+    (1e-5 reference widths, 0.0006 px here) and cuts as numpy's at network shares, except for pixels at the cut
+    itself: on these aligned grids a whole column of pixels has one distance, and float32 puts it on either side."""
+    from workers.mtlx.check import render_pptbf
+
+    params = BORDER_CASES[name]
+    got, _ = render_pptbf(params, W, shift=SHIFT, function="pptbf_border")
+    ref = pp.evaluate(params, W, W, shift=SHIFT, ref_width=W, field="border")
+    assert np.mean(np.abs(got - ref) <= 1e-5) >= AGREEMENT, name
+    for q in (0.08, 0.15, 0.3):
+        cut = float(np.quantile(ref, q))
+        away = np.abs(ref - cut) > 1e-5
+        share = float(np.mean(((got > cut) == (ref > cut))[away]))
+        assert share >= AGREEMENT and away.mean() > 0.9, (name, q, share, away.mean())

@@ -198,7 +198,8 @@ def expand_includes(path: Path, seen: set | None = None) -> str:
 
 
 def pptbf_shader(function: str = "pptbf_value") -> str:
-    """A fragment shader writing the PPTBF core's ``function`` (pptbf_value: V; pptbf_cell: the cell key) at
+    """A fragment shader writing the PPTBF core's ``function`` (pptbf_value: V; pptbf_cell: the cell key;
+    pptbf_border: the distance to the cell's border) at
     base coordinates pixel / unit + shift, parameters from the uniform ``prm_u``."""
     core = expand_includes(LIBRARY / "genglsl" / "lib" / "pptbf_core.glsl")
     return f"""#version 400
@@ -225,7 +226,7 @@ void main()
 def render_pptbf(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), ref_width: int | None = None,
                  function: str = "pptbf_value") -> tuple[np.ndarray, float]:
     """The GLSL PPTBF over an image as ``pptbf_db.pptbf.evaluate`` lays it out (pixel_scale 1): (HxW float32,
-    seconds). ``function="pptbf_cell"`` gives the cell keys / 2^24."""
+    seconds). ``function="pptbf_cell"`` gives the cell keys / 2^24, ``"pptbf_border"`` the border distance."""
     height = width if height is None else height
     ref = float(ref_width or width)
     t0 = time.perf_counter()

@@ -54,6 +54,7 @@ PPTBF_PLACE = FRAME + (
 PPTBF_CUT = (
     ("cut", "float", "0.5", "white where the PPTBF value is above this"),
     ("complement", "boolean", "false", "swap white and black"),
+    ("border", "boolean", "false", "cut the distance to the cell's border instead of the value (cut in its units)"),
 )
 #: the 8 neighbouring pixels (dx right, dy down) a ``pptbf_ring`` node evaluates: ring0 holds the first 4, ring1
 #: the last 4 (the Sobel normal reads exactly these)
@@ -182,8 +183,10 @@ void {nd.function}(
 
 
 def pptbf_glsl_text() -> str:
-    """The GLSL entry point of the ``pptbf`` node: the PPTBF value against the stored cut."""
-    return _pptbf_glsl(NODEDEFS[0], "    float v = pptbf_value(x0, y0, ref_width, prm);\n"
+    """The GLSL entry point of the ``pptbf`` node: the PPTBF value (or the border distance) against the stored
+    cut."""
+    return _pptbf_glsl(NODEDEFS[0], "    float key;\n"
+                                    "    float v = pptbf_eval_field(x0, y0, ref_width, prm, border, key);\n"
                                     "    result = ((v > cut) != complement) ? 1.0 : 0.0;")
 
 
@@ -203,7 +206,8 @@ def pptbf_ring_glsl_text() -> str:
     int n = 8 + min(tiling, 0);          // 8, not known to the compiler: the loop stays one loop
     for (int k = 0; k < n; ++k) {{
         float key;
-        float v = pptbf_eval((i + dx[k]) / u + s.x, (j + dy[k]) / u + s.y, ref_width, prm, key);
+        float v = pptbf_eval_field((i + dx[k]) / u + s.x, (j + dy[k]) / u + s.y, ref_width, prm, border && !cells,
+                                   key);
         r[k] = cells ? key : (((v > cut) != complement) ? 1.0 : 0.0);
     }}
     ring0 = vec4(r[0], r[1], r[2], r[3]);

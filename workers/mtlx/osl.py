@@ -93,8 +93,10 @@ void {nd.function}(
 
 
 def pptbf_osl_text() -> str:
-    """The OSL entry point of the ``pptbf`` node: the PPTBF value against the stored cut."""
-    return _pptbf_osl(NODEDEFS[0], "    float v = pptbf_value(x0, y0, ref_width, prm);\n"
+    """The OSL entry point of the ``pptbf`` node: the PPTBF value (or the border distance) against the stored
+    cut."""
+    return _pptbf_osl(NODEDEFS[0], "    float key;\n"
+                                   "    float v = pptbf_eval_field(x0, y0, ref_width, prm, border, key);\n"
                                    "    result = ((v > cut) != (complement != 0)) ? 1.0 : 0.0;")
 
 
@@ -113,7 +115,8 @@ def pptbf_ring_osl_text() -> str:
     float r[8];
     for (int k = 0; k < 8; ++k) {{
         float key;
-        float v = pptbf_eval((i + dx[k]) / us + sx, (j + dy[k]) / us + sy, ref_width, prm, key);
+        float v = pptbf_eval_field((i + dx[k]) / us + sx, (j + dy[k]) / us + sy, ref_width, prm,
+                                   border != 0 && cells == 0, key);
         r[k] = (cells != 0) ? key : (((v > cut) != (complement != 0)) ? 1.0 : 0.0);
     }}
     ring0 = vector4(r[0], r[1], r[2], r[3]);

@@ -25,13 +25,20 @@ def node_shift(params: dict, ctx: EvalContext, node_id: str) -> tuple[float, flo
     return tuple(float(x) for x in r.uniform(0.0, 8.0, size=2))
 
 
+def _gap(field: str) -> float:
+    """The gap the cut of ``field`` sits in (``pp.cut_level``): the border distance's sides are near plateaus."""
+    return pp.BORDER_GAP if field == "border" else 0.0
+
+
 @register_node
 class PPTBFNode(NodeType):
     """Binary PPTBF mask (HxWx1 in {0,1}); params: `params` (29 numbers, period in `ref_width` pixels),
     `complement`, `ref_width` (working width the params are defined at), optional `shift`; optional input
     `parent` multiplies the mask (sub-layer masks stay inside their parent). With `output: cells` the node gives
     instead the key of the cell each pixel is in (HxWx1 in [0, 1), one value per PPTBF cell), for per-cell
-    draws (``instances``, ``piece_offsets``); `stream` names the node whose realisation it shares."""
+    draws (``instances``, ``piece_offsets``); `stream` names the node whose realisation it shares. With
+    `field: border` the cut is made on the distance to the cell's border instead of the PPTBF value (cells with
+    the cellular window): a network of one width along every side of the cells (``pptbf.border_distance``)."""
 
     name = "pptbf"
     inputs = ("parent",)
@@ -40,7 +47,8 @@ class PPTBFNode(NodeType):
               Param("complement", "bool", False, doc="swap the mask's two sides"),
               Param("shift", "data", None, doc="the realisation: null or [x, y]"),
               Param("output", "data", "mask", doc="mask | cells"),
-              Param("stream", "data", None, doc="node id whose realisation this node shares (default: its own)"))
+              Param("stream", "data", None, doc="node id whose realisation this node shares (default: its own)"),
+              Param("field", "data", "value", doc=f"what is cut: {' | '.join(pp.FIELDS)}"))
 
     def check(self, params: dict) -> None:
         p = params.get("params")
@@ -57,6 +65,12 @@ class PPTBFNode(NodeType):
         st = params.get("stream")
         if st is not None and not (isinstance(st, str) and st):
             raise GraphError("pptbf.stream must be null or a node id")
+        f = self.get(params, "field")
+        if f not in pp.FIELDS:
+            raise GraphError(f"pptbf.field must be one of {', '.join(pp.FIELDS)}")
+        if f == "border" and not pp.uses_cellular(pp.decode(p)):
+            raise GraphError("pptbf.field 'border' needs cells with the cellular window (window_blend > 0 and "
+                             "feature_mixture other than 3 or 4)")
 
     def field(self, params, ctx: EvalContext, node_id: str, cells: bool = False):
         """The raw PPTBF values (HxW) of this node's realisation, before the cut (and the cell keys)."""
@@ -65,13 +79,13 @@ class PPTBFNode(NodeType):
         pixel_scale = ctx.px_scale * float(ctx.working_size[0]) / rw
         return pp.evaluate(np.asarray(params["params"], dtype=np.float64), ctx.width, ctx.height,
                            shift=node_shift(params, ctx, node_id), pixel_scale=pixel_scale, ref_width=int(round(rw)),
-                           cells=cells)
+                           cells=cells, field=self.get(params, "field"))
 
     def evaluate(self, params, inputs, ctx, node_id):
         if self.get(params, "output") == "cells":
             _, keys = self.field(params, ctx, node_id, cells=True)
             return (keys.astype(np.float64) / CELL_SCALE).astype(np.float32)[..., None]
-        m = pp.binarize(self.field(params, ctx, node_id), float(params["params"][0]))
+        m = pp.binarize(self.field(params, ctx, node_id), float(params["params"][0]), _gap(self.get(params, "field")))
         if self.get(params, "complement"):
             m = ~m
         out = m.astype(np.float32)[..., None]
@@ -81,8 +95,9 @@ class PPTBFNode(NodeType):
 
     def materialx(self, b, node, node_id, offset):
         """Our ``pptbf`` MaterialX node with the cut of the exported realisation (the quantile ``binarize`` takes
-        over the whole image), so that the shader's mask equals the numpy mask at the exported size and seed; or,
-        for ``output: cells``, our ``pptbf_cells`` node. Read at one of the 8 neighbouring pixels (``RING``), it is
+        over the whole image, of the value or, with ``field: border``, of the border distance), so that the
+        shader's mask equals the numpy mask at the exported size and seed; or, for ``output: cells``, our
+        ``pptbf_cells`` node. Read at one of the 8 neighbouring pixels (``RING``), it is
         an output of the node's single ``pptbf_ring`` (one PPTBF in the shader for all 8 reads)."""
         from ..mtlx.library import RING, RING_OUTPUTS
 
@@ -94,11 +109,10 @@ class PPTBFNode(NodeType):
         if not cells:
             key = ("pptbf_cut", node_id)
             if key not in b.ctx.cache:
-                v = self.field(p, b.ctx, node_id)
-                finite = v[np.isfinite(v)]
-                b.ctx.cache[key] = float(np.quantile(finite, min(max(1.0 - float(p["params"][0]), 0.0), 1.0))) \
-                    if finite.size else float("inf")
-            inputs.update(cut=b.ctx.cache[key], complement=bool(self.get(p, "complement")))
+                b.ctx.cache[key] = pp.cut_level(self.field(p, b.ctx, node_id), float(p["params"][0]),
+                                                _gap(self.get(p, "field")))
+            inputs.update(cut=b.ctx.cache[key], complement=bool(self.get(p, "complement")),
+                          border=self.get(p, "field") == "border")
         shift = node_shift(p, b.ctx, node_id)
         inputs.update(texcoord=("vector2", b.texcoord), size=("interface", b.size_in),
                       unit=float(b.mat.pattern_unit * b.mat.working_size[0]), scale=("interface", b.scale_in),

@@ -15,6 +15,7 @@ void mx_pptbf_float(
     float ref_width,
     float cut,
     bool complement,
+    bool border,
     float threshold,
     int tiling,
     float jitter,
@@ -54,6 +55,7 @@ void mx_pptbf_float(
     float x0 = i / u + s.x;
     float y0 = j / u + s.y;
     float prm[29] = float[29](threshold, float(tiling), jitter, resolution, rotation, aspect_ratio, distortion_base, distortion_amplitude, distortion_frequency, float(window_shape), window_arity, window_larp, window_norm, window_smoothness, window_blend, window_sigma, float(feature_mixture), feature_norm, feature_correlation, feature_aniso, float(feature_kernel_min), float(feature_kernel_max), feature_sigcos, feature_sigcosvar, float(feature_frequency), feature_phase_shift, feature_thickness, feature_curvature, feature_orientation);
-    float v = pptbf_value(x0, y0, ref_width, prm);
+    float key;
+    float v = pptbf_eval_field(x0, y0, ref_width, prm, border, key);
     result = ((v > cut) != complement) ? 1.0 : 0.0;
 }

@@ -15,6 +15,7 @@ void mx_pptbf_ring_vector4(
     float ref_width,
     float cut,
     bool complement,
+    bool border,
     bool cells,
     float threshold,
     int tiling,
@@ -62,7 +63,8 @@ void mx_pptbf_ring_vector4(
     int n = 8 + min(tiling, 0);          // 8, not known to the compiler: the loop stays one loop
     for (int k = 0; k < n; ++k) {
         float key;
-        float v = pptbf_eval((i + dx[k]) / u + s.x, (j + dy[k]) / u + s.y, ref_width, prm, key);
+        float v = pptbf_eval_field((i + dx[k]) / u + s.x, (j + dy[k]) / u + s.y, ref_width, prm, border && !cells,
+                                   key);
         r[k] = cells ? key : (((v > cut) != complement) ? 1.0 : 0.0);
     }
     ring0 = vec4(r[0], r[1], r[2], r[3]);

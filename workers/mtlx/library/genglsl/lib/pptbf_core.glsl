@@ -4,6 +4,7 @@
 // from that code, in float32 (no double precision). Entry point:
 //
 //     float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float key);
+//     float pptbf_eval_field(float x0, float y0, float ref_width, float prm[29], bool border, out float key);
 //
 // (and its parts pptbf_value, pptbf_cell).
 // (x0, y0) = pixel / (ref_width * pixel_scale) + shift as pptbf.base_coords gives them, prm = the 29-vector in
@@ -1004,7 +1005,31 @@ pptbf_Tile pptbf_cand_tile(pptbf_Prm P, ivec2 O, int code0, int k)
 // Raw PPTBF value V at base coordinates (x0, y0) = pixel / (ref_width * pixel_scale) + shift, as
 // pptbf.base_coords gives them; prm = the 29-vector (pptbf.PARAM_NAMES order); ref_width as in pptbf.evaluate.
 // key: the cell the pixel is in, pptbf.cell_keys of its closest point / 2^24 (exact in float32).
-float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float key)
+// distance (reference widths, inside > 0) from d (relative to p0) to the polygon of p0's cell through the border
+// points of sectors ka - 3 .. ka + 4, measured in the image (pptbf.border_distance, BORDER_FAN = 3)
+float pptbf_border_distance(vec2 d, int ka, float rot_u, pptbf_Prm P, pptbf_Nbrs B, vec4 inv0)
+{
+    vec4 lo = pptbf_border_radii(ka - 2, rot_u, P, B, inv0);     // sectors ka - 3 .. ka
+    vec4 hi = pptbf_border_radii(ka + 2, rot_u, P, B, inv0);     // sectors ka + 1 .. ka + 4
+    float rho[8] = float[8](lo.x, lo.y, lo.z, lo.w, hi.x, hi.y, hi.z, hi.w);
+    vec2 V[8];
+    for (int k = 0; k < 8; ++k) {
+        float t = float(ka - 3 + k) * P.delta + P.delta * rot_u;
+        V[k] = rho[k] * vec2(cos(t), sin(t));
+    }
+    float best = pptbf_BIG;
+    for (int k = 0; k < 7; ++k) {
+        vec2 e = V[k + 1] - V[k];
+        float side = e.x * (d.y - V[k].y) - e.y * (d.x - V[k].x);     // > 0 inside (counter-clockwise sides)
+        float across = P.zoom * length(vec2(e.y / P.aspect, e.x));      // domain -> image across the side
+        if (across > 0.0)
+            best = min(best, side / across);
+    }
+    return best;
+}
+
+// V, or with border the distance to the closest point's cell border (pptbf.evaluate's field)
+float pptbf_eval_field(float x0, float y0, float ref_width, float prm[29], bool border, out float key)
 {
     key = 0.0;
     pptbf_Prm P = pptbf_decode(prm, ref_width);
@@ -1084,12 +1109,17 @@ float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float k
         vec2 p0r = p0.pos - vec2(p0.id.xy - O);
         pptbf_Nbrs B = pptbf_border_gather(P, p0.id, p0r);
         vec4 inv0 = min(pptbf_side_inverses(p0.g, p0.ch), vec4(1.0e10));
+        if (border)
+            return pptbf_border_distance(d, ka, rot_u, P, B, inv0);
         vec4 rho = pptbf_border_radii(ka, rot_u, P, B, inv0);      // sectors ka - 1 .. ka + 2
         float ta = float(ka) * P.delta + rot;
         bool up = pptbf_upper_branch(alpha, ta, rho.y, rho.z, P.delta);
         float cv = pptbf_cellular_cv(d, rot, ka, up, vec3(rho.y, rho.z, up ? rho.w : rho.x), P);
         wcell = P.beta * pptbf_cellular_weight(cv, P.sigw);
     }
+
+    if (border)
+        return 0.0;                      // no cellular window: no border (the graph refuses it)
 
     // pass 2: windows and features of the MAXN nearest
     float ws = 0.0;
@@ -1146,11 +1176,24 @@ float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float k
     return max(V, 0.0) * pptbf_V_SCALE;
 }
 
+float pptbf_eval(float x0, float y0, float ref_width, float prm[29], out float key)
+{
+    return pptbf_eval_field(x0, y0, ref_width, prm, false, key);
+}
+
 // the PPTBF value V alone
 float pptbf_value(float x0, float y0, float ref_width, float prm[29])
 {
     float key;
     return pptbf_eval(x0, y0, ref_width, prm, key);
+}
+
+// the distance to the closest point's cell border alone (pptbf.evaluate with field="border")
+float pptbf_border(float x0, float y0, float ref_width, float prm[29])
+{
+    float key;
+    bool border = prm[1] > -1.0;         // true, but not a constant: with a literal true llvmpipe returned 0
+    return pptbf_eval_field(x0, y0, ref_width, prm, border, key);
 }
 
 // the cell key alone (pptbf.cell_keys of the closest point / 2^24)
