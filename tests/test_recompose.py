@@ -345,8 +345,9 @@ def _plate_layouts() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", size: int = 128,
-                thinner: bool = True, **meta) -> dict:
-    """choose_cells' report on plates (cells of ``truth``, dark seams) whose split's fit is ``fitted``."""
+                thinner: bool = True, truth_field: str = "value", **meta) -> dict:
+    """choose_cells' report on plates (cells of ``truth``, cut on ``truth_field``, dark seams) whose split's fit
+    is ``fitted``."""
     from pptbf_db import pptbf as pp
     from workers import noise as N
     from workers.assemble import build_material
@@ -354,7 +355,7 @@ def _choose_for(truth: np.ndarray, fitted: np.ndarray, method: str = "lattice", 
     from workers.masks import MaskFit
     from workers.recompose import choose_cells
 
-    plates = ~pp.render_mask(truth, size, size, shift=(1.3, 2.1))
+    plates = ~pp.render_mask(truth, size, size, shift=(1.3, 2.1), field=truth_field)
     rng = np.random.default_rng(0)
     albedo = np.where(plates[..., None], np.float32([0.55, 0.45, 0.35]), np.float32([0.1, 0.08, 0.06]))
     albedo = (albedo + 0.02 * rng.standard_normal(albedo.shape)).astype(np.float32)
@@ -403,10 +404,10 @@ def test_lattice_masks_take_the_crisp_cells_where_the_material_prefers_them():
     other = analyse_lattice(~pp.render_mask(crisp, 128, 128, shift=(1.3, 2.1))).scaled(1.5).to_dict()
     r = _choose_for(crisp, shaped, lattice=other)["fits"]["root.0"]
     assert r["keeps_lattice"] is False and r["chosen"] == "fitted", r
-    # a query-path fit (no lattice: its cells are its look), a network fitted widened (the template cut at its
-    # small share makes wedges) and a fit already crisp are not compared
+    # a query-path fit (no lattice: its cells are its look), a network fitted widened (the template's value cut
+    # at its small share makes wedges) and a fit already crisp are not compared
     assert _choose_for(crisp, shaped, method="query")["fits"] == {}
-    assert _choose_for(crisp, shaped, widened={"radius_px": 2})["fits"] == {}
+    assert "template" not in _choose_for(crisp, shaped, widened={"radius_px": 2})["fits"]["root.0"]
     assert "chosen" not in _choose_for(crisp, crisp)["fits"]["root.0"]
 
 
@@ -426,6 +427,28 @@ def test_rounded_template_cells_give_way_to_straight_ones_on_straight_plates():
     assert out["params"][pp.PARAM_INDEX["window_arity"]] == STRAIGHT_CELLS["window_arity"]
 
 
+def test_bricks_take_joints_of_one_width_where_the_material_has_them():
+    """Bricks twice as long as high: where the input's joints have one width (the border distance's cut), the fit's
+    cells cut on their value (head joints about twice the bed joints) are offered the border cut, which the
+    material takes; where the input's joints are the value cut's, the fit keeps it. The rendered graph's joints
+    are then as wide as the input's both ways."""
+    from pptbf_db import pptbf as pp
+
+    bricks, _ = _plate_layouts()
+    for k, v in {"aspect_ratio": 2.0, "threshold": 0.8}.items():
+        bricks[pp.PARAM_INDEX[k]] = v
+    even = _choose_for(bricks, bricks, truth_field="border")
+    r = even["fits"]["root.0"]["border"]
+    print("input cut on the border:", r, even["network_share"])
+    assert r.get("chosen") in ("border", "straight_border"), r
+    assert r[r["chosen"]] < 0.8 * r["value"]
+    assert abs(even["network_share"]["output"] - even["network_share"]["input"]) < 0.03
+    uneven = _choose_for(bricks, bricks)
+    r = uneven["fits"]["root.0"]["border"]
+    print("input cut on the value:", r)
+    assert "chosen" not in r and r["border"] > r["value"], r
+
+
 def test_a_lattice_network_fitted_too_wide_is_cut_thinner_where_the_material_prefers_it():
     """Plates with 6 % seams whose split was fitted at a structure cut's 25 %: the same cells cut thinner (the
     network at 60 % or 35 % of its share) are nearer the material, and taken; plates whose seams are the fitted
@@ -437,10 +460,12 @@ def test_a_lattice_network_fitted_too_wide_is_cut_thinner_where_the_material_pre
     thin = wide.copy()
     thin[pp.PARAM_INDEX["threshold"]] = 0.94
     out = _choose_for(thin, wide)
-    r = out["fits"]["root.0"]["network"]
-    print("thin seams:", r)
+    fits = out["fits"]["root.0"]
+    r = fits["network"]
+    print("thin seams:", r, fits.get("border"), fits.get("network_border"))
     assert r.get("chosen") in ("x0.6", "x0.35"), r
-    assert 1.0 - out["params"][0] == pytest.approx(r[r["chosen"]][0], abs=1e-6)     # the seams' share
+    last = fits["network_border"] if "chosen" in fits.get("network_border", {}) else r   # the last cut taken
+    assert 1.0 - out["params"][0] == pytest.approx(last[last["chosen"]][0], abs=1e-6)     # the seams' share
     seams = out["network_share"]           # in the rendered albedo: the graph's seams are as thin as the input's
     print("network share, input / output:", seams)
     assert abs(seams["output"] - seams["input"]) < 0.06, seams

@@ -143,6 +143,7 @@ class MaskFit:
     shift: tuple[float, float] = (0.0, 0.0)
     entry_id: int | None = None
     meta: dict = field(default_factory=dict)
+    field: str = "value"          # what the mask cuts (``pp.FIELDS``): the recomposition may choose "border"
 
     def render(self, width: int | None = None, height: int | None = None, *, pixel_scale: float = 1.0,
                shift=None) -> np.ndarray:
@@ -150,7 +151,7 @@ class MaskFit:
         w = self.fit_size[0] if width is None else width
         h = self.fit_size[1] if height is None else height
         m = pp.render_mask(self.params, w, h, shift=self.shift if shift is None else shift,
-                           pixel_scale=pixel_scale, ref_width=self.fit_size[0])
+                           pixel_scale=pixel_scale, ref_width=self.fit_size[0], field=self.field)
         return ~m if self.complement else m
 
     def to_dict(self) -> dict:
@@ -161,7 +162,8 @@ class MaskFit:
                 "history": [float(v) for v in self.history], "fit_size": [int(v) for v in self.fit_size],
                 "shift": [float(v) for v in self.shift],
                 "entry_id": None if self.entry_id is None else int(self.entry_id),
-                "meta": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.meta.items()}}
+                "meta": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.meta.items()},
+                "field": self.field}
 
     @classmethod
     def from_dict(cls, d: dict) -> "MaskFit":
@@ -178,6 +180,8 @@ class MaskFit:
         k = working_width / float(self.fit_size[0])
         p[pp.PARAM_INDEX["resolution"]] = float(np.clip(int(p[pp.PARAM_INDEX["resolution"]]) * k, 1.0, 1e6))
         out = {"params": [float(v) for v in p], "complement": bool(self.complement), "ref_width": int(working_width)}
+        if self.field != "value":
+            out["field"] = self.field
         if pin_shift:
             out["shift"] = [float(self.shift[0]), float(self.shift[1])]
         return out
