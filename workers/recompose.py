@@ -432,10 +432,10 @@ def _even_network(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial]
     where that keeps the lattice and the material's evaluation loss is CELLS_MARGIN lower; else unchanged.
 
     Cut on the value, the cellular window leaves along each side a band as wide as that side's distance from the
-    cell's point: bricks twice as long as high got head joints twice as wide as their bed joints, metal plates
-    horizontal seams half again as wide as the vertical ones; and a thin network fitted widened (``masks``) could
-    not take the straight template, whose value cut at a few % of the pixels left hairlines across the cells'
-    short sides (see ``choose_cells``)."""
+    cell's point: bricks twice as long as high got head joints twice as wide as their bed joints, the README
+    metal's plates horizontal seams twice as wide as the vertical ones; and a thin network fitted widened
+    (``masks``) could not take the straight template, whose value cut at a few % of the pixels left hairlines
+    across the cells' short sides (see ``choose_cells``)."""
     fit = fits[node].get("fit", {})
     if fit.get("meta", {}).get("method") != "lattice" or fit.get("field", "value") != "value":
         return fits, material, best
