@@ -60,7 +60,7 @@ def test_save_load_round_trip(tmp_path):
     m = brick_like()
     p = save(m, tmp_path / "sub" / "material.json")
     doc = json.loads(p.read_text())
-    assert doc["format"] == "proceduralize/1.1" and doc["seed"] == 7 and doc["working_size"] == [64, 64]
+    assert doc["format"] == "proceduralize/1.2" and doc["seed"] == 7 and doc["working_size"] == [64, 64]
     m2 = load(p)
     assert m2.to_json() == m.to_json()
     a, b = evaluate(m, 48, 40), evaluate(m2, 48, 40)

@@ -51,7 +51,7 @@ def test_scale_one_is_the_input_pattern_size(tmp_path):
     mat = _material((INPUT, INPUT))
     G.save(mat, tmp_path / "material.json")
     doc = json.loads((tmp_path / "material.json").read_text())
-    assert doc["format"] == "proceduralize/1.1" and doc["input_size"] == [INPUT, INPUT]
+    assert doc["format"] == "proceduralize/1.2" and doc["input_size"] == [INPUT, INPUT]
     loaded = G.load(tmp_path / "material.json")
     assert loaded.pattern_unit == INPUT / WORKING
     # rendered at the input's size, the lattice is the input's (not the working size's, half as large)
@@ -77,3 +77,15 @@ def test_old_files_keep_their_meaning(tmp_path):
     for v in ([0, 5], [1.5, 2], "256", [256]):
         with pytest.raises(GraphError, match="input_size"):
             G.from_json(dict(doc, format=G.FORMAT, input_size=v))
+
+
+def test_a_border_cut_needs_the_format_that_knows_it():
+    """Format 1.1 readers ignore the pptbf node's ``field`` (they would cut the value): such files are 1.2, a
+    1.1 file without it still loads, one with it is refused with the reason."""
+    doc = _material((INPUT, INPUT)).to_json()
+    mask = next(n for n in doc["nodes"] if n["type"] == "pptbf")
+    assert G.from_json(json.loads(json.dumps(dict(doc, format="proceduralize/1.1")))).input_size is not None
+    mask["params"]["field"] = "border"
+    assert G.from_json(json.loads(json.dumps(doc))).node(mask["id"])["params"]["field"] == "border"
+    with pytest.raises(GraphError, match="field"):
+        G.from_json(dict(doc, format="proceduralize/1.1"))

@@ -2,7 +2,7 @@
 
 File layout (``material.json``)::
 
-    {"format": "proceduralize/1.1",
+    {"format": "proceduralize/1.2",
      "seed": 1234,                      # default realisation
      "working_size": [512, 512],        # size (px) the graph was fitted at (node params are in these pixels)
      "input_size": [2048, 2048],        # size (px) of the input maps; scale 1 = the input's pattern size
@@ -40,8 +40,10 @@ from .errors import GraphError
 from .height import height_to_normal
 from .nodes import NODE_TYPES, EvalContext, as3
 
-FORMAT = "proceduralize/1.1"   # 1.1 adds "input_size" (scale 1 = the input's pattern size)
-SUPPORTED_FORMATS = ("proceduralize/1", FORMAT)
+#: 1.1 adds "input_size" (scale 1 = the input's pattern size); 1.2 the pptbf node's "field" (a reader of 1.1
+#: would ignore it and cut a border-distance mask on the PPTBF value)
+FORMAT = "proceduralize/1.2"
+SUPPORTED_FORMATS = ("proceduralize/1", "proceduralize/1.1", FORMAT)
 #: pattern scales ``evaluate`` accepts (1/64 .. 64): the scale multiplies every spatial size in the graph
 MIN_SCALE, MAX_SCALE = 1.0 / 64.0, 64.0
 #: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
@@ -169,6 +171,8 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     if fmt == "proceduralize/1" and "input_size" in doc:
         raise GraphError(f"{source}: 'input_size' needs format {FORMAT!r} (format {fmt!r} draws scale 1 at the "
                          f"working size's pattern)")
+    if fmt != FORMAT and any(n["type"] == "pptbf" and "field" in n["params"] for n in nodes.values()):
+        raise GraphError(f"{source}: a pptbf node's 'field' needs format {FORMAT!r} (got {fmt!r})")
     seed = doc.get("seed", 0)
     if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
         raise GraphError(f"{source}: seed must be an integer from 0 to 2**63-1, got {seed!r}")
