@@ -1078,6 +1078,16 @@ def upper_branch(alpha, p0x, p0y, ta, rho_a, rho_b, delta: float) -> np.ndarray:
     return alpha > am
 
 
+def pixel_sectors(x, y, ps: PixelStructure, st: Structure, d: Decoded) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha, ka): each pixel's angle about its closest point and the cellular window's sector it lies in."""
+    P = st.points
+    p0 = ps.nbr[..., 0]
+    alpha = np.mod(np.arctan2(y - P.py[p0], x - P.px[p0]), 2.0 * math.pi)
+    palpha = alpha - d.delta * P.rot_u[p0]
+    palpha = np.where(palpha < 0.0, palpha + 2.0 * math.pi, palpha)
+    return alpha, np.floor(palpha / d.delta).astype(np.int64)
+
+
 def cellular_sectors(x, y, ps: PixelStructure, st: Structure, d: Decoded, need_comp: bool = False,
                      memo: BorderMemo | None = None) -> None:
     """Fill ps.ka / up / rho / rho_comp: the closest cell's border radii at sectors ka, ka+1 and ka+2 or ka-1."""
@@ -1085,12 +1095,9 @@ def cellular_sectors(x, y, ps: PixelStructure, st: Structure, d: Decoded, need_c
     P = st.points
     p0 = ps.nbr[..., 0]
     p0x, p0y = P.px[p0], P.py[p0]
-    alpha = np.mod(np.arctan2(y - p0y, x - p0x), 2.0 * math.pi)
+    alpha, ka = pixel_sectors(x, y, ps, st, d)
     delta = d.delta
     rot = delta * P.rot_u[p0]
-    palpha = alpha - rot
-    palpha = np.where(palpha < 0.0, palpha + 2.0 * math.pi, palpha)
-    ka = np.floor(palpha / delta).astype(np.int64)
     rho_ab, comp_ab = _border_queries(p0, ka[..., None] + np.arange(2), st, d, need_comp, memo, pending)
     ta = ka * delta + rot
     up = upper_branch(alpha, p0x, p0y, ta, rho_ab[..., 0], rho_ab[..., 1], delta)
@@ -1381,7 +1388,7 @@ def border_distance(x, y, ps: PixelStructure, st: Structure, d: Decoded, zoom: f
     p0 = ps.nbr[..., 0]
     p0x, p0y = P.px[p0], P.py[p0]
     rot = d.delta * P.rot_u[p0]
-    j = ps.ka[..., None] + np.arange(-BORDER_FAN, BORDER_FAN + 2)
+    j = pixel_sectors(x, y, ps, st, d)[1][..., None] + np.arange(-BORDER_FAN, BORDER_FAN + 2)
     pending: list = []
     rho, _ = _border_queries(p0, np.mod(j, d.n_sectors), st, d, False, memo, pending)
     if memo is not None:
@@ -1471,15 +1478,16 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
 
     def run(r0: int) -> None:
         sl = slice(r0, r0 + rows)
-        ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d, memo=memo)
+        if border:     # the ranking only: the border distance solves its own sectors' radii
+            ps = rank_pixels(x[sl], y[sl], st.code[sl], st, d)
+            out[sl] = border_distance(x[sl], y[sl], ps, st, d, zoom, memo)
+        else:
+            ps = pixel_structure(x[sl], y[sl], st.code[sl], st, d, memo=memo)
+            for s0 in range(0, ps.nbr.shape[0], sub):
+                s1 = slice(s0, s0 + sub)
+                out[r0 + s0:r0 + s0 + sub] = shade(x[sl][s1], y[sl][s1], ps.rows(s1), st.points, d, K)
         if keys is not None:
             keys[sl] = st.points.cell[ps.nbr[..., 0]]
-        if border:
-            out[sl] = border_distance(x[sl], y[sl], ps, st, d, zoom, memo)
-            return
-        for s0 in range(0, ps.nbr.shape[0], sub):
-            s1 = slice(s0, s0 + sub)
-            out[r0 + s0:r0 + s0 + sub] = shade(x[sl][s1], y[sl][s1], ps.rows(s1), st.points, d, K)
 
     starts = range(0, x.shape[0], rows)
     n = min(len(starts), threads)
@@ -1497,6 +1505,11 @@ def evaluate(params, width: int, height: int | None = None, *, shift=(0.0, 0.0),
 #: one distance, a few % of the pixels)
 BORDER_GAP = 1e-5
 GAP_SHARE = 0.05
+
+
+def field_gap(field: str) -> float:
+    """The gap a cut of ``field`` sits in (:func:`cut_level`): the border distance's sides are near plateaus."""
+    return BORDER_GAP if field == "border" else 0.0
 
 
 def cut_level(values: np.ndarray, threshold: float, gap: float = 0.0) -> float:
@@ -1540,8 +1553,7 @@ def binarize(values: np.ndarray, threshold: float, gap: float = 0.0) -> np.ndarr
 def render_mask(params, width: int, height: int | None = None, **kw) -> np.ndarray:
     """Binary PPTBF mask: evaluate then binarize with the vector's own threshold (entry 0)."""
     p = _as_params(params)
-    gap = BORDER_GAP if kw.get("field") == "border" else 0.0
-    return binarize(evaluate(p, width, height, **kw), p[0], gap)
+    return binarize(evaluate(p, width, height, **kw), p[0], field_gap(kw.get("field", "value")))
 
 
 def evaluate_torch(params, width: int, height: int | None = None, *, shift=(0.0, 0.0), pixel_scale: float = 1.0,

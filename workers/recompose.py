@@ -363,6 +363,24 @@ def _node_mask(material: G.ProceduralMaterial, node: str) -> np.ndarray:
     return G.evaluate_node(material, graph_id("mask", node), ctx)[..., 0] > 0.5
 
 
+def _trial(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial], fits: Mapping[str, Mapping], node: str,
+           change: Mapping, target: Any, config: RecomposeConfig | None,
+           network_white: bool | None = None) -> tuple[Mapping, G.ProceduralMaterial, float]:
+    """``fits`` with ``node``'s fit updated by ``change``, its material and its evaluation loss: inf where the
+    mask loses the lattice its fit was made for, or (``network_white``: which side of the mask is the network)
+    where the network falls apart (its largest piece under NETWORK_PIECE_SHARE)."""
+    fit = fits[node]["fit"]
+    trial = {**fits, node: {**fits[node], "fit": {**fit, **change}}}
+    material = build(trial)
+    mask = None
+    ok = True
+    if network_white is not None:
+        mask = _node_mask(material, node)
+        ok = largest_piece_share(mask if network_white else ~mask) >= NETWORK_PIECE_SHARE
+    ok = ok and _keeps_layout(material, node, fit, mask)
+    return trial, material, evaluation_loss(material, target, config) if ok else math.inf
+
+
 #: how much lower the evaluation loss of the straight cells must be for the material to take them: the loss is
 #: the assembled graph's, before the optimisation adapts the filters to either; smaller gains did not survive it
 #: (the README roof: 6.481 against 6.501 before, then VGG-19 Gram / floor albedo 3.87 -> 4.21, normal
@@ -403,10 +421,8 @@ def choose_cells(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial],
         crisp = template_cells(fit["params"], STRAIGHT_CELLS)
         if np.allclose(crisp, np.asarray(fit["params"], dtype=np.float64)):
             continue
-        trial = {**fits, node: {**fits[node], "fit": {**fit, "params": crisp.tolist()}}}
-        trial_material = build(trial)
-        layout = _keeps_layout(trial_material, node, fit)
-        loss = evaluation_loss(trial_material, target, config) if layout else math.inf
+        trial, trial_material, loss = _trial(build, fits, node, {"params": crisp.tolist()}, target, config)
+        layout = math.isfinite(loss)
         chosen = "template" if loss < (1.0 - CELLS_MARGIN) * best else "fitted"
         compared[node] = {"fitted": best, "template": loss if layout else None, "keeps_lattice": layout,
                           "chosen": chosen}
@@ -449,10 +465,9 @@ def _even_network(build: Callable[[Mapping[str, Mapping]], G.ProceduralMaterial]
     for name, p in offers.items():
         if not pp.uses_cellular(pp.decode(p)):
             continue
-        trial = {**fits, node: {**fits[node], "fit": {**fit, "params": p.tolist(), "field": "border"}}}
-        trial_material = build(trial)
-        layout = _keeps_layout(trial_material, node, fit)
-        loss = evaluation_loss(trial_material, target, config) if layout else math.inf
+        trial, trial_material, loss = _trial(build, fits, node, {"params": p.tolist(), "field": "border"}, target,
+                                             config)
+        layout = math.isfinite(loss)
         report["border"][name] = loss if layout else None
         if loss < (1.0 - CELLS_MARGIN) * best:
             fits, material, best = trial, trial_material, loss
@@ -507,12 +522,9 @@ def _thinner_network(build: Callable[[Mapping[str, Mapping]], G.ProceduralMateri
         p = params.copy()
         new_white = k * share if net_white else 1.0 - k * share
         p[0] = 1.0 - new_white if compl else new_white
-        trial = {**fits, node: {**fits[node], "fit": {**fit, "params": p.tolist(), "field": field}}}
-        trial_material = build(trial)
-        mask = _node_mask(trial_material, node)
-        whole = largest_piece_share(mask if net_white else ~mask) >= NETWORK_PIECE_SHARE
-        layout = whole and _keeps_layout(trial_material, node, fit, mask)
-        loss = evaluation_loss(trial_material, target, config) if layout else math.inf
+        trial, trial_material, loss = _trial(build, fits, node, {"params": p.tolist(), "field": field}, target,
+                                             config, network_white=net_white)
+        layout = math.isfinite(loss)
         report[key][f"x{k}"] = [round(float(k * share), 4), loss if layout else None]
         if loss < (1.0 - CELLS_MARGIN) * best:
             fits, material, best = trial, trial_material, loss

@@ -25,11 +25,6 @@ def node_shift(params: dict, ctx: EvalContext, node_id: str) -> tuple[float, flo
     return tuple(float(x) for x in r.uniform(0.0, 8.0, size=2))
 
 
-def _gap(field: str) -> float:
-    """The gap the cut of ``field`` sits in (``pp.cut_level``): the border distance's sides are near plateaus."""
-    return pp.BORDER_GAP if field == "border" else 0.0
-
-
 @register_node
 class PPTBFNode(NodeType):
     """Binary PPTBF mask (HxWx1 in {0,1}); params: `params` (29 numbers, period in `ref_width` pixels),
@@ -85,7 +80,8 @@ class PPTBFNode(NodeType):
         if self.get(params, "output") == "cells":
             _, keys = self.field(params, ctx, node_id, cells=True)
             return (keys.astype(np.float64) / CELL_SCALE).astype(np.float32)[..., None]
-        m = pp.binarize(self.field(params, ctx, node_id), float(params["params"][0]), _gap(self.get(params, "field")))
+        m = pp.binarize(self.field(params, ctx, node_id), float(params["params"][0]),
+                        pp.field_gap(self.get(params, "field")))
         if self.get(params, "complement"):
             m = ~m
         out = m.astype(np.float32)[..., None]
@@ -110,7 +106,7 @@ class PPTBFNode(NodeType):
             key = ("pptbf_cut", node_id)
             if key not in b.ctx.cache:
                 b.ctx.cache[key] = pp.cut_level(self.field(p, b.ctx, node_id), float(p["params"][0]),
-                                                _gap(self.get(p, "field")))
+                                                pp.field_gap(self.get(p, "field")))
             inputs.update(cut=b.ctx.cache[key], complement=bool(self.get(p, "complement")),
                           border=self.get(p, "field") == "border")
         shift = node_shift(p, b.ctx, node_id)
