@@ -234,10 +234,10 @@ def stage_decompose(call: StageCall, holder: Any = None) -> dict:
 
 def stage_noise(call: StageCall, holder: Any = None) -> dict:
     """Fit the multi-layer noise model of one (leaf, map) item; write its parameters as JSON. A kind of an
-    instance split is fitted on its within-piece residual, and the spread of its pieces' means is written beside
-    (``pieces``, workers.pieces)."""
+    instance split is fitted on its residual without the pieces' offsets from the split's background, and the
+    spread of those offsets is written beside (``pieces``, workers.pieces)."""
     from workers.noise import NoiseConfig, fit_noise
-    from workers.pieces import kind_piece_labels, piece_residual
+    from workers.pieces import kind_piece_labels, piece_residual, piece_trend
 
     leaf_id, map_name = call.item.rsplit("/", 1)
     folder = call.folder
@@ -250,9 +250,9 @@ def stage_noise(call: StageCall, holder: Any = None) -> dict:
     doc: dict = {"leaf": leaf_id, "map": map_name}
     if map_name in cfg.per_piece and parent is not None and parent.method == "instances" and \
             "instance_labels" in parent.meta:
-        lab = kind_piece_labels(parent.meta["instance_labels"], parent.meta["instance_kinds"],
-                                [c.id for c in parent.children].index(leaf_id))
-        image, stats = piece_residual(image, lab, leaf.mask)
+        split_labels, split_kinds = parent.meta["instance_labels"], parent.meta["instance_kinds"]
+        lab = kind_piece_labels(split_labels, split_kinds, [c.id for c in parent.children].index(leaf_id))
+        image, stats = piece_residual(image, lab, leaf.mask, piece_trend(image, split_labels, split_kinds))
         doc["pieces"] = stats.to_dict()
     doc["params"] = _to_jsonable(fit_noise(image, leaf.mask, config=cfg))
     path = write_json(folder.noise_model(leaf_id, map_name), doc)

@@ -16,6 +16,17 @@ edges) with the height itself unchanged (2.85); on the albedo 3.69 -> 4.89 and t
 Gaussian draw of a kind's shades gives bricks darker and brighter than any in the input, and the residual's
 noise loses the low-frequency part the recomposition matched), so ``NoiseConfig.per_piece`` defaults to the
 height only.
+
+A piece's offset is measured against the surface's smooth background, not against the kind's mean: a height
+integrated from normals drifts across the whole map, and so do albedos under large stains. Against the kind's
+mean, that drift counted as between-piece spread and came back as independent steps between neighbours
+(roof_slates_02 at 512 px: the pieces' height means spread 0.16-0.18 about their kinds' means, where
+neighbouring slates differ by 0.049 each, half the variance of adjacent pieces' differences, and 0.035 about the
+background): a checkerboard of slates set high and low where the input's neighbours lie nearly level.
+:func:`piece_trend` is that background (a Gaussian low-pass, ``TREND_SPACINGS`` piece spacings wide, of every
+piece of the split with each kind's mean taken out); a piece's offset is its mean less the background over it
+(its own pixels' share of the low-pass taken out), and the residual keeps the background, so the kind's noise
+carries the drift.
 """
 from __future__ import annotations
 
@@ -29,6 +40,11 @@ from .instances import nearest_labels
 from .nodes.pieces import psd_root
 
 MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
+TREND_SPACINGS = 1.5  # the background's Gaussian sigma in piece spacings (sqrt(image area / pieces)): wide enough
+#                       that a piece's own pixels weigh ~10 % of it, narrow enough to follow the drift. The
+#                       offsets' spread grows slowly with it (roof_slates_02 at 512 px, height: 0.035 / 0.039 /
+#                       0.042 at 1.5 / 2 / 2.5): the roof's relief also varies over 2-5 slates, which the
+#                       residual's noise keeps
 
 
 @dataclass
@@ -52,13 +68,67 @@ def _psd(cov: np.ndarray) -> np.ndarray:
     return f @ f.T
 
 
-def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, PieceStats]:
-    """(residual HxWxC, stats): ``image`` with every piece's mean (pixels of ``mask`` with the same label > 0)
-    replaced by the mean over ``mask``, and the between-piece covariance of those means. The covariance of the
-    means over-states the between-piece spread by the pooled within-piece covariance / piece size (a small
-    piece's mean is itself noisy); that part is subtracted, and the result clipped to be semi-definite."""
+@dataclass
+class Trend:
+    """The smooth background under a split's pieces: ``field`` (HxWxC, the low-pass of the pieces' pixels with each
+    kind's mean taken out, so zero on average over a kind), ``density`` (HxW, the low-pass of the pieces'
+    coverage) and the low-pass's ``sigma`` (px)."""
+
+    field: np.ndarray
+    density: np.ndarray
+    sigma: float
+
+    def own_weight(self, counts: np.ndarray, density: np.ndarray) -> np.ndarray:
+        """The share of the background over a piece of ``counts`` px (where the coverage is ``density``) that
+        comes from the piece itself: the low-pass kernel's peak mass times its area (1.5 / (2 pi sigma^2) for
+        the twiced Gaussian 2G - G*G), below 0.5."""
+        return np.clip(1.5 * counts / (2.0 * np.pi * self.sigma ** 2 * np.maximum(density, 1e-9)), 0.0, 0.5)
+
+
+def _as3(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image, np.float32)
-    img3 = img[..., None] if img.ndim == 2 else img
+    return img[..., None] if img.ndim == 2 else img
+
+
+def piece_trend(image: np.ndarray, labels: np.ndarray, kinds=None) -> Trend:
+    """The background of ``image`` under the pieces ``labels`` (1..N, 0 = gap) of a split whose piece i+1 has kind
+    ``kinds[i]`` (None: one kind): a periodic Gaussian low-pass ``TREND_SPACINGS`` piece spacings wide of the
+    pieces' pixels, each less its kind's mean, normalised by the pieces' coverage, then twiced (2F - G*F: a
+    plain low-pass leaves part of a curved drift in the pieces' offsets, 16 % of a sinusoid 16 spacings long)."""
+    img3 = _as3(image)
+    lab = np.asarray(labels, np.int64)
+    if img3.shape[:2] != lab.shape:
+        raise InputError(f"pieces: image {img3.shape[:2]} and labels {lab.shape} differ in size")
+    m = lab > 0
+    kind = np.zeros(int(lab.max()) + 1, np.int64)
+    if kinds is not None and kind.size > 1:
+        kind[1:] = np.asarray(kinds, np.int64)[:kind.size - 1]
+    k = kind[lab[m]]
+    counts = np.bincount(k, minlength=1).astype(np.float64)
+    means = np.stack([np.bincount(k, img3[m][:, c], minlength=counts.size) for c in range(img3.shape[2])], 1)
+    means /= np.maximum(counts, 1.0)[:, None]
+    centred = np.where(m[..., None], img3 - means[kind[lab]], 0.0)
+    pieces = max(1, int(np.unique(lab[m]).size))
+    sigma = TREND_SPACINGS * float(np.sqrt(lab.size / pieces))
+    density = ndimage.gaussian_filter(m.astype(np.float64), sigma, mode="wrap")
+    field = np.empty(img3.shape, np.float32)
+    for c in range(img3.shape[2]):
+        f = ndimage.gaussian_filter(centred[..., c], sigma, mode="wrap") / np.maximum(density, 1e-9)
+        field[..., c] = 2.0 * f - ndimage.gaussian_filter(f, sigma, mode="wrap")   # twicing: no curvature bias
+    return Trend(field, density.astype(np.float32), sigma)
+
+
+def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
+                   trend: Trend | None = None) -> tuple[np.ndarray, PieceStats]:
+    """(residual HxWxC, stats): ``image`` with every piece's offset (pixels of ``mask`` with the same label > 0)
+    taken out, and the between-piece covariance of those offsets. A piece's offset is its mean less the kind's
+    mean and the background ``trend`` over it (default: :func:`piece_trend` of these pieces alone), divided by
+    1 - its own pixels' weight in the background (:meth:`Trend.own_weight`), so the residual keeps the
+    background. The covariance of the offsets over-states the between-piece
+    spread by the pooled within-piece covariance / piece size (a small piece's mean is itself noisy); that part is
+    subtracted, and the result clipped to be semi-definite."""
+    img = np.asarray(image, np.float32)
+    img3 = _as3(img)
     m = np.asarray(mask, bool) & (np.asarray(labels) > 0)
     if img3.shape[:2] != m.shape:
         raise InputError(f"pieces: image {img3.shape[:2]} and labels {m.shape} differ in size")
@@ -67,15 +137,25 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray) -> t
     ids, counts = np.unique(lab[m], return_counts=True)
     if ids.size < MIN_PIECES:
         return img.copy(), PieceStats(np.zeros((c, c)), int(ids.size))
+    if trend is None:
+        trend = piece_trend(img3, lab)
+    if trend.field.shape != img3.shape:
+        raise InputError(f"pieces: trend {trend.field.shape} and image {img3.shape} differ in size")
     sums = np.stack([ndimage.sum(img3[..., k], lab, ids) for k in range(c)], axis=1)
     means = sums / counts[:, None]
     kind_mean = sums.sum(0) / counts.sum()
+    back = np.stack([ndimage.mean(trend.field[..., k], lab, ids) for k in range(c)], axis=1)
+    own = trend.own_weight(counts, ndimage.mean(trend.density, lab, ids))
+    off = (means - kind_mean - back) / (1.0 - own)[:, None]
+    off -= (off * counts[:, None]).sum(0) / counts.sum()          # the kind's mean stays where it was
     table = np.zeros((int(lab.max()) + 1, c))
-    table[ids] = means - kind_mean
+    table[ids] = off
     res = img3 - table[lab]                                       # label 0 (outside) subtracts nothing
-    dev = (res - kind_mean)[m]                                    # within-piece deviations
+    mean_table = np.zeros_like(table)
+    mean_table[ids] = means
+    dev = (img3 - mean_table[lab])[m]                             # within-piece deviations
     within = dev.T @ dev / max(1, dev.shape[0] - ids.size)
-    cov = np.atleast_2d(np.cov(means.T)) - within * float(np.mean(1.0 / counts))
+    cov = np.atleast_2d(np.cov(off.T)) - within * float(np.mean(1.0 / (counts * (1.0 - own) ** 2)))
     out = res.astype(np.float32)
     return (out[..., 0] if img.ndim == 2 else out), PieceStats(_psd(cov), int(ids.size))
 
