@@ -41,19 +41,15 @@ def _piece_means(img: np.ndarray, lab: np.ndarray) -> np.ndarray:
     return np.stack([ndimage.mean(img[..., c], lab, ids) for c in range(img.shape[-1])], 1)
 
 
-def test_residual_takes_out_each_pieces_offset_and_the_stats_recover_the_spread():
-    """Without a background, every piece's mean in the residual comes near the kind's mean (its spread half the
-    drawn offsets' or less: what is left is the background's estimate from the neighbours, measured 0.31-0.37),
-    the kind's mean is kept, the mortar is untouched, and the between-piece covariance comes back within 15 %
-    (diagonal) of the drawn offsets' although strong within-piece noise (std 0.3 over ~200 px pieces) inflates
-    the raw covariance of the means by up to 40 %."""
+def test_residual_takes_out_each_pieces_mean_and_the_stats_recover_the_spread():
+    """Every piece's mean in the residual is the kind's mean (to float precision), the mortar is untouched, and
+    the between-piece covariance comes back within 15 % (diagonal) of the drawn offsets' although strong
+    within-piece noise (std 0.3 over ~200 px pieces) inflates the raw covariance of the means by up to 40 %."""
     img, cells, lab, off = _shaded(within=0.3, n=384)
     res, stats = piece_residual(img, lab, cells)
     ids = np.arange(1, lab.max() + 1)
     kind_mean = img[cells].mean(0)
-    left = _piece_means(res, lab) - kind_mean
-    print(f"residual means' std {left.std(0)} against the offsets' {off[ids].std(0)}")
-    assert (left.std(0) < off[ids].std(0) / 2).all() and np.abs(res[cells].mean(0) - kind_mean).max() < 1e-5
+    assert np.abs(_piece_means(res, lab) - kind_mean).max() < 1e-5
     assert np.allclose(res[~cells], img[~cells])
     drawn = np.diag(np.cov(off[ids].T))
     raw = np.diag(np.cov(_piece_means(img, lab).T))
@@ -68,8 +64,7 @@ def test_residual_takes_out_each_pieces_offset_and_the_stats_recover_the_spread(
 def test_offsets_are_measured_against_the_surfaces_drift():
     """A drift across the map (a height integrated from normals, stains) ten times the offsets' variance, under
     two kinds whose means differ by 0.5: each kind's offsets' covariance comes back within 20 % of the drawn
-    one (against the kind's mean instead: 3x too large or more), and the residual keeps the drift (its pieces'
-    means follow the drift's means over the pieces, correlation > 0.95): the noise is fitted on it."""
+    one (against the kind's mean instead: 3x too large or more)."""
     n = 384
     img, cells, lab, off = _shaded(seed=3, n=n)
     y, x = np.mgrid[:n, :n] / n
@@ -81,19 +76,14 @@ def test_offsets_are_measured_against_the_surfaces_drift():
     for k in (0, 1):
         kl = kind_piece_labels(lab, kinds, k)
         mine = cells & (kl > 0)
-        res, stats = piece_residual(img, kl, mine, trend)
-        _, flat = piece_residual(img, kl, mine, Trend(np.zeros_like(trend.field), trend.density, 1e9))
+        stats = piece_residual(img, kl, mine, trend)[1]
+        flat = piece_residual(img, kl, mine, Trend(np.zeros_like(trend.field), trend.density, 1e9))[1]
         ids = np.unique(kl[mine])
         drawn = np.diag(np.cov(off[ids].T))
         err = np.abs(np.diag(stats.cov) - drawn) / drawn
         print(f"kind {k}: {ids.size} pieces; cov diag {np.diag(stats.cov)} (drawn {drawn}; against the kind's "
               f"mean {np.diag(flat.cov)})")
         assert err.max() < 0.2 and (np.diag(flat.cov) > 3 * drawn).all()
-        res_means = np.stack([ndimage.mean(res[..., c], kl, ids) for c in range(3)], 1)
-        drift_means = ndimage.mean(drift, kl, ids)
-        corr = min(np.corrcoef(res_means[:, c], drift_means)[0, 1] for c in range(3))
-        print(f"kind {k}: residual means follow the drift, correlation {corr:.3f}")
-        assert corr > 0.95
 
 
 def test_kind_pieces_follow_the_instance_split():
