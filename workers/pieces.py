@@ -23,7 +23,7 @@ mean, that drift counted as between-piece spread and came back as independent st
 (roof_slates_02 at 512 px: the pieces' height means spread 0.16-0.18 about their kinds' means, where
 neighbouring slates differ by 0.049 each, half the variance of adjacent pieces' differences, and 0.035 about the
 background): a checkerboard of slates set high and low where the input's neighbours lie nearly level.
-:func:`piece_trend` is that background (a Gaussian low-pass, ``TREND_SPACINGS`` piece spacings wide, of every
+:func:`piece_trend` is that background (a twiced Gaussian low-pass, ``TREND_SPACINGS`` piece spacings wide, of every
 piece of the split with each kind's mean taken out); a piece's offset is its mean less the background over it
 (its own pixels' share of the low-pass taken out). The residual the kind's noise is fitted on loses the
 background with the offsets, as before: a random-phase noise cannot hold a drift longer than its spectra's
@@ -45,8 +45,7 @@ MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (of
 TREND_SPACINGS = 1.5  # the background's Gaussian sigma in piece spacings (sqrt(image area / pieces)): wide enough
 #                       that a piece's own pixels weigh ~10 % of it, narrow enough to follow the drift. The
 #                       offsets' spread grows slowly with it (roof_slates_02 at 512 px, height: 0.035 / 0.039 /
-#                       0.042 at 1.5 / 2 / 2.5): the roof's relief also varies over 2-5 slates, which the
-#                       residual's noise keeps
+#                       0.042 at 1.5 / 2 / 2.5): the roof's relief also varies over 2-5 slates
 
 
 @dataclass
@@ -148,7 +147,6 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
     back = np.stack([ndimage.mean(trend.field[..., k], lab, ids) for k in range(c)], axis=1)
     own = trend.own_weight(counts, ndimage.mean(trend.density, lab, ids))
     off = (means - kind_mean - back) / (1.0 - own)[:, None]
-    off -= (off * counts[:, None]).sum(0) / counts.sum()
     table = np.zeros((int(lab.max()) + 1, c))
     table[ids] = means
     dev = (img3 - table[lab])[m]                                  # within-piece deviations
