@@ -234,8 +234,8 @@ def stage_decompose(call: StageCall, holder: Any = None) -> dict:
 
 def stage_noise(call: StageCall, holder: Any = None) -> dict:
     """Fit the multi-layer noise model of one (leaf, map) item; write its parameters as JSON. A kind of an
-    instance split is fitted on its residual without the pieces' offsets from the split's background, and the
-    spread of those offsets is written beside (``pieces``, workers.pieces)."""
+    instance split is fitted on its within-piece residual, and the spread of its pieces' offsets from the split's
+    smooth background is written beside (``pieces``, workers.pieces)."""
     from workers.noise import NoiseConfig, fit_noise
     from workers.pieces import kind_piece_labels, piece_residual, piece_trend
 
