@@ -39,6 +39,7 @@ from scipy import ndimage
 
 from .errors import InputError
 from .instances import nearest_labels
+from .nodes import as3
 from .nodes.pieces import psd_root
 
 MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
@@ -86,17 +87,12 @@ class Trend:
         return np.clip(1.5 * counts / (2.0 * np.pi * self.sigma ** 2 * np.maximum(density, 1e-9)), 0.0, 0.5)
 
 
-def _as3(image: np.ndarray) -> np.ndarray:
-    img = np.asarray(image, np.float32)
-    return img[..., None] if img.ndim == 2 else img
-
-
 def piece_trend(image: np.ndarray, labels: np.ndarray, kinds=None) -> Trend:
     """The background of ``image`` under the pieces ``labels`` (1..N, 0 = gap) of a split whose piece i+1 has kind
     ``kinds[i]`` (None: one kind): a periodic Gaussian low-pass ``TREND_SPACINGS`` piece spacings wide of the
     pieces' pixels, each less its kind's mean, normalised by the pieces' coverage, then twiced (2F - G*F: a
     plain low-pass leaves part of a curved drift in the pieces' offsets, 16 % of a sinusoid 16 spacings long)."""
-    img3 = _as3(image)
+    img3 = as3(np.asarray(image, np.float32))
     lab = np.asarray(labels, np.int64)
     if img3.shape[:2] != lab.shape:
         raise InputError(f"pieces: image {img3.shape[:2]} and labels {lab.shape} differ in size")
@@ -104,9 +100,9 @@ def piece_trend(image: np.ndarray, labels: np.ndarray, kinds=None) -> Trend:
     kind = np.zeros(int(lab.max()) + 1, np.int64)
     if kinds is not None and kind.size > 1:
         kind[1:] = np.asarray(kinds, np.int64)[:kind.size - 1]
-    k = kind[lab[m]]
+    k, vals = kind[lab[m]], img3[m]
     counts = np.bincount(k, minlength=1).astype(np.float64)
-    means = np.stack([np.bincount(k, img3[m][:, c], minlength=counts.size) for c in range(img3.shape[2])], 1)
+    means = np.stack([np.bincount(k, vals[:, c], minlength=counts.size) for c in range(img3.shape[2])], 1)
     means /= np.maximum(counts, 1.0)[:, None]
     centred = np.where(m[..., None], img3 - means[kind[lab]], 0.0)
     pieces = max(1, int(np.unique(lab[m]).size))
@@ -128,7 +124,7 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
     the offsets over-states the between-piece spread by the pooled within-piece covariance / piece size (a small
     piece's mean is itself noisy); that part is subtracted, and the result clipped to be semi-definite."""
     img = np.asarray(image, np.float32)
-    img3 = _as3(img)
+    img3 = as3(img)
     m = np.asarray(mask, bool) & (np.asarray(labels) > 0)
     if img3.shape[:2] != m.shape:
         raise InputError(f"pieces: image {img3.shape[:2]} and labels {m.shape} differ in size")
