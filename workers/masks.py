@@ -114,6 +114,8 @@ class MaskFitConfig:
     #                               1-px widening) came back far from their truth (Gram ratio 0.95 -> 16.8,
     #                               0.90 -> 3.5, 1.17 -> 6.6): thresholded back, a fit's cells need not keep
     #                               their borders' shape; metal_plate_02's seams are 7-8 %
+    thin_refine_evals: int = 90   # a widened fit's cell shape re-chosen on the thin network itself
+    #                               (refine_thin_shape; 0 = keep the widened fit's shape)
     incomplete: str = "known"   # sub-layer masks in the service: "known" (loss on the parent's pixels) or
     #                             "inpaint" (complete the maps by workers.inpaint, re-segment, fit the full mask)
 
@@ -511,7 +513,41 @@ def _layout_first(mask, index, valid, cfg: MaskFitConfig, seed: int,
     fit.params[0] = 1.0 - white if fit.complement else white
     fit.meta.update(widened={"radius_px": radius, "white_fraction": fit.meta.get("white_fraction"),
                              "lattice": fit.meta.get("lattice")}, white_fraction=white, lattice=lat.to_dict())
+    if cfg.thin_refine_evals > 0:
+        refine_thin_shape(fit, target, lat, cfg)
     return fit
+
+
+def refine_thin_shape(fit: MaskFit, target: np.ndarray, lat: Lattice, cfg: MaskFitConfig) -> None:
+    """Re-choose a widened fit's cell shape (the window lines of workers.layout_fit: larp, smoothness, arity,
+    jitter, norm; layout untouched) by the loss of the thin network itself, in place.
+
+    The widened network's best cells need not be the thin one's: on metal_plate_02 at 512 px the widened seams
+    chose rounded cells (larp 0.69: loss 0.36 there against 0.45 for straight borders), which thresholded back
+    to the seams' 7 % bow the course lines and pinch the vertical seams into wedges; on the thin seams the
+    straight borders score better (0.55 against 0.61) and look like the input's plates. The shape found here is
+    kept only when it also wins on fresh realisations (``_validate``)."""
+    from .layout_fit import GramMaskLoss, layout_weight, loss_factor, window_lines
+
+    t0 = time.perf_counter()
+    loss = GramMaskLoss(target, None, shift=cfg.shift, factor=loss_factor(target.shape[1]),
+                        realisations=cfg.realisations, structure_weight=layout_weight(lat))
+    c = fit.complement
+    x0 = loss.with_threshold(fit.params, c)
+    budget = Budget(lambda q: loss(q, c), cfg.thin_refine_evals, t0 + 0.25 * cfg.time_budget_s)
+    start = budget(x0)
+    x = window_lines(budget, x0, cycles=2, scan=False)
+    cands = [(budget.best_loss, c, x, "thin", True), (start, c, x0, "widened", True)]
+    params, own, _, chosen, val, n_val = _validate(loss, cands, max(1, cfg.validate))
+    threshold = fit.params[0]        # the network's share at full size (the fit size's lines lose pixels)
+    fit.params = pp.clip_params(params)
+    fit.params[0] = threshold
+    fit.evaluations += budget.evaluations + n_val
+    fit.seconds += time.perf_counter() - t0
+    fit.meta["thin_shape"] = {"start_loss": float(start), "loss": float(own), "validation_loss": float(val),
+                              "chosen": chosen, "evaluations": budget.evaluations + n_val}
+    logger.info("mask: thin network's cell shape %s (loss %.4f -> %.4f, %d evals)", chosen, start, own,
+                budget.evaluations + n_val)
 
 
 def _fit(mask, index, valid, cfg: MaskFitConfig, seed: int, cell_length: float | None = None) -> MaskFit:
