@@ -60,7 +60,7 @@ def test_save_load_round_trip(tmp_path):
     m = brick_like()
     p = save(m, tmp_path / "sub" / "material.json")
     doc = json.loads(p.read_text())
-    assert doc["format"] == "proceduralize/1.2" and doc["seed"] == 7 and doc["working_size"] == [64, 64]
+    assert doc["format"] == "proceduralize/1.3" and doc["seed"] == 7 and doc["working_size"] == [64, 64]
     m2 = load(p)
     assert m2.to_json() == m.to_json()
     a, b = evaluate(m, 48, 40), evaluate(m2, 48, 40)
@@ -164,6 +164,11 @@ def test_seed_and_rng_are_deterministic():
      "duplicate node id 'c'"),
     ({"format": "proceduralize/1", "nodes": [{"id": "blend_root.0", "type": "constant", "params": {"value": 1}}],
       "maps": []}, "contain no '.'"),
+    ({"format": "proceduralize/1.2", "nodes": [{"id": "r", "type": "piece_ramps", "params": {"ramp": [[0, 1]]}}],
+      "maps": []}, "a piece_ramps node needs format 'proceduralize/1.3' or later"),
+    ({"format": "proceduralize/1.1", "nodes": [{"id": "p", "type": "pptbf", "params": {
+        "params": [0.5, 0, 0.1, 32.0, 0, 1.0] + [0.0] * 23, "ref_width": 64, "field": "value"}}], "maps": []},
+     "'field' needs format 'proceduralize/1.2'"),
 ])
 def test_malformed_documents_rejected(tmp_path, doc, pattern):
     p = tmp_path / "bad.json"
@@ -171,6 +176,18 @@ def test_malformed_documents_rejected(tmp_path, doc, pattern):
     with pytest.raises(GraphError, match=pattern) as exc:
         load(p)
     assert "bad.json" in str(exc.value)
+
+
+def test_older_formats_still_read_what_they_introduced(tmp_path):
+    """A 1.2 document with a pptbf node's field and a 1.1 one with input_size load (each feature needs the format
+    that introduced it or a later one, not the current one)."""
+    pptbf = {"id": "p", "type": "pptbf", "params": {"params": [0.5, 0, 0.1, 32.0, 0, 1.0] + [0.0] * 23,
+                                                       "field": "value", "ref_width": 64}}
+    for fmt, doc in (("proceduralize/1.2", {"nodes": [pptbf]}),
+                     ("proceduralize/1.1", {"nodes": [], "input_size": [64, 64]})):
+        p = tmp_path / "old.json"
+        p.write_text(json.dumps({"format": fmt, "maps": [], **doc}))
+        assert load(p).nodes.keys() == {n["id"] for n in doc["nodes"]}
 
 
 def test_unreadable_files_rejected(tmp_path):

@@ -131,3 +131,80 @@ def test_stats_round_trip():
     s = PieceStats(COV, 40)
     t = PieceStats.from_dict(s.to_dict())
     assert t.pieces == 40 and np.allclose(t.cov, COV)
+    r = PieceStats(COV, 40, ramp=np.array([[0.0, 0.004]]))
+    assert np.allclose(PieceStats.from_dict(r.to_dict()).ramp, [[0.0, 0.004]]) and "ramp" not in s.to_dict()
+
+
+def _slates(slope: float, seed: int = 0, n: int = N, wrap_shift: int = 5) -> tuple[np.ndarray, np.ndarray,
+                                                                                      np.ndarray]:
+    """(height, cells, labels): bricks whose height rises by ``slope`` per px down each piece (about its centroid)
+    plus one offset per piece and white noise, the whole rolled by ``wrap_shift`` px so that pieces wrap around
+    the tile's edges (joined across them, as the decomposition's labels are)."""
+    rng = np.random.default_rng(seed)
+    cells, _ = _bricks(course=16, length=24, joint=2, n=n)
+    y, x = np.mgrid[:n, :n]
+    row = y // 16
+    lab = np.where(cells, 1 + row * (n // 24) + ((x + (row % 2) * 12) % n) // 24, 0)   # one label across the edge
+    y = y.astype(np.float64)
+    ids = np.arange(1, lab.max() + 1)
+    cy = np.zeros(lab.max() + 1)
+    cy[ids] = ndimage.mean(y, lab, ids)
+    off = 0.03 * rng.standard_normal(lab.max() + 1)
+    h = 0.5 + np.where(cells, off[lab] + slope * (y - cy[lab]), 0.0) + 0.01 * rng.standard_normal((n, n))
+    roll = lambda a: np.roll(a, (wrap_shift, wrap_shift), (0, 1))  # noqa: E731
+    return roll(h).astype(np.float32), roll(cells), roll(lab)
+
+
+def test_ramps_of_sloped_pieces_are_measured_and_taken_out():
+    """Pieces whose height rises 0.004 per px down each (14 px high: 0.052 over a piece, as roof_slates_02's
+    slates at 512 px) with pieces wrapping around the tile's edges: the ramp comes back within 5 % with no slope
+    across, the residual inside the pieces has no slope left (under 3 % of it) and the offsets' spread is
+    unchanged (within 15 %); flat pieces get no ramp."""
+    h, cells, lab = _slates(0.004)
+    lab = np.where(cells, lab, 0)
+    res, stats = piece_residual(h, lab, cells)
+    assert stats.ramp is not None
+    gx, gy = stats.ramp[0]
+    print(f"ramp {stats.ramp[0]}; cov {stats.cov[0, 0]:.5f} (drawn 0.0009)")
+    assert abs(gy - 0.004) < 0.05 * 0.004 and abs(gx) < 0.05 * 0.004
+    assert 6.0 <= stats.reach[1] <= 8.0 and 10.0 <= stats.reach[0] <= 12.0      # 14 x 22 px pieces
+    from workers.pieces import piece_coordinates, piece_ramp
+    left, _ = piece_ramp(res[cells][:, None] - res[cells].mean(), piece_coordinates(lab, cells))
+    assert left is None
+    assert abs(stats.cov[0, 0] - 0.0009) < 0.15 * 0.0009
+    flat, _, flab = _slates(0.0)
+    assert piece_residual(flat, np.where(_, flab, 0), _)[1].ramp is None
+
+
+def test_ramps_node_tilts_each_piece_about_its_centroid():
+    """piece_ramps over piece_labels and over a pptbf node's cells: inside every piece the value rises by the
+    stored slope per working px (x and y, at scale 1 and, per output px, halved at scale 2), its mean over the
+    piece is zero, and it is zero outside the pieces (labels); cells are connected regions of one key (distant
+    cells that share a key each get their own centroid); with a reach the ramp stops at it."""
+    cells, lab = _bricks(course=16, length=24)
+    ramp = [[0.001, 0.004]]
+    node = G.NODE_TYPES["piece_ramps"]
+    node.validate({"ramp": ramp})
+    for scale in (1.0, 2.0):
+        ctx = G.EvalContext(width=N, height=N, scale=scale, working_size=(N, N))
+        out = node.evaluate({"ramp": ramp}, {"labels": lab[..., None].astype(np.float32)}, ctx, "pr")[..., 0]
+        inner = ndimage.binary_erosion(cells) & np.roll(cells, -1, 0) & np.roll(cells, -1, 1)
+        dy, dx = (np.roll(out, -1, 0) - out)[inner], (np.roll(out, -1, 1) - out)[inner]
+        assert np.allclose(dy, 0.004 / scale, atol=1e-6) and np.allclose(dx, 0.001 / scale, atol=1e-6)
+        assert not out[~cells].any()
+        ids = np.arange(1, lab.max() + 1)
+        assert np.abs(ndimage.mean(out, lab, ids)).max() < 1e-5
+    # cell keys cover every pixel and are hashes: distant cells share one (here every fifth piece)
+    keys = np.where(lab > 0, 1 + lab % 5, 0).astype(np.float32)[..., None]
+    ctx = G.EvalContext(width=N, height=N, working_size=(N, N))
+    by_cell = node.evaluate({"ramp": ramp}, {"cells": keys}, ctx, "pr")[..., 0]
+    assert np.allclose((np.roll(by_cell, -1, 0) - by_cell)[inner], 0.004, atol=1e-6)
+    assert np.abs(ndimage.mean(by_cell, lab, ids)).max() < 1e-5
+    # the distance from the centroid is clipped at the reach: at most 2 px of slope each way
+    clipped = node.evaluate({"ramp": ramp, "reach": [2.0, 2.0]}, {"labels": lab[..., None].astype(np.float32)},
+                            ctx, "pr")[..., 0]
+    assert np.abs(clipped).max() <= 2 * (0.004 + 0.001) + 1e-7 < np.abs(out).max()
+    for bad in ({"ramp": [[1.0]]}, {"ramp": "x"}, {"ramp": [[np.nan, 0.0]]}, {},
+                {"ramp": ramp, "reach": [1.0]}, {"ramp": ramp, "reach": [0.0, 1.0]}):
+        with pytest.raises(GraphError):
+            node.validate(bad)

@@ -51,7 +51,7 @@ def test_scale_one_is_the_input_pattern_size(tmp_path):
     mat = _material((INPUT, INPUT))
     G.save(mat, tmp_path / "material.json")
     doc = json.loads((tmp_path / "material.json").read_text())
-    assert doc["format"] == "proceduralize/1.2" and doc["input_size"] == [INPUT, INPUT]
+    assert doc["format"] == "proceduralize/1.3" and doc["input_size"] == [INPUT, INPUT]
     loaded = G.load(tmp_path / "material.json")
     assert loaded.pattern_unit == INPUT / WORKING
     # rendered at the input's size, the lattice is the input's (not the working size's, half as large)

@@ -80,10 +80,14 @@ def add_cells_node(mat: ProceduralMaterial, node_id: str, source: str) -> str:
 
 def add_piece_offsets(mat: ProceduralMaterial, node_id: str, leaf: str, pieces: dict[str, str],
                       stats: PieceStats) -> str:
-    """Add ``piece_offsets`` over ``pieces`` (``{"cells": node}`` or ``{"labels": node}``) and an ``add`` of it to
-    node ``leaf``; returns the add node's id."""
-    off = mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": stats.to_dict()["cov"]}, **pieces)
-    return mat.add(node_id, "add", {}, in0=leaf, in1=off)
+    """Add ``piece_offsets`` over ``pieces`` (``{"cells": node}`` or ``{"labels": node}``), and ``piece_ramps`` when
+    the kind's pieces are ramps, and an ``add`` of them to node ``leaf``; returns the add node's id."""
+    d = stats.to_dict()
+    terms = {"in0": leaf, "in1": mat.add(f"{node_id}_offsets", "piece_offsets", {"cov": d["cov"]}, **pieces)}
+    if "ramp" in d:
+        ramp = {k: d[k] for k in ("ramp", "reach") if k in d}
+        terms["in2"] = mat.add(f"{node_id}_ramps", "piece_ramps", ramp, **pieces)
+    return mat.add(node_id, "add", {}, **terms)
 
 
 def build_material(material: Any, tree: MaskNode, noises: Mapping, fits: Mapping, seed: int = 0,

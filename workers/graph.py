@@ -2,7 +2,7 @@
 
 File layout (``material.json``)::
 
-    {"format": "proceduralize/1.2",
+    {"format": "proceduralize/1.3",
      "seed": 1234,                      # default realisation
      "working_size": [512, 512],        # size (px) the graph was fitted at (node params are in these pixels)
      "input_size": [2048, 2048],        # size (px) of the input maps; scale 1 = the input's pattern size
@@ -41,9 +41,10 @@ from .height import height_to_normal
 from .nodes import NODE_TYPES, EvalContext, as3
 
 #: 1.1 adds "input_size" (scale 1 = the input's pattern size); 1.2 the pptbf node's "field" (a reader of 1.1
-#: would ignore it and cut a border-distance mask on the PPTBF value)
-FORMAT = "proceduralize/1.2"
-SUPPORTED_FORMATS = ("proceduralize/1", "proceduralize/1.1", FORMAT)
+#: would ignore it and cut a border-distance mask on the PPTBF value); 1.3 the piece_ramps node (a reader of 1.2
+#: stops at the unknown node type)
+FORMAT = "proceduralize/1.3"
+SUPPORTED_FORMATS = ("proceduralize/1", "proceduralize/1.1", "proceduralize/1.2", FORMAT)
 #: pattern scales ``evaluate`` accepts (1/64 .. 64): the scale multiplies every spatial size in the graph
 MIN_SCALE, MAX_SCALE = 1.0 / 64.0, 64.0
 #: a map output's name (it becomes ``<name>.png``): albedo, normal, roughness, height, metallic, ...
@@ -133,6 +134,12 @@ def _size_field(doc: dict, key: str, source: str) -> tuple[int, int] | None:
     return int(v[0]), int(v[1])
 
 
+def _needs_format(fmt: str, first: str, what: str, source: str, why: str = "") -> None:
+    """Raise GraphError when document format ``fmt`` is older than ``first``, the format that introduced ``what``."""
+    if SUPPORTED_FORMATS.index(fmt) < SUPPORTED_FORMATS.index(first):
+        raise GraphError(f"{source}: {what} needs format {first!r} or later (got {fmt!r}){why}")
+
+
 def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
     """Validate a parsed JSON document and build a :class:`ProceduralMaterial`."""
     if not isinstance(doc, dict):
@@ -168,11 +175,13 @@ def from_json(doc: Any, source: str = "<material>") -> ProceduralMaterial:
         for port, src in n["inputs"].items():
             if src not in nodes:
                 raise GraphError(f"{source}: node {nid!r} input {port!r} refers to missing node {src!r}")
-    if fmt == "proceduralize/1" and "input_size" in doc:
-        raise GraphError(f"{source}: 'input_size' needs format {FORMAT!r} (format {fmt!r} draws scale 1 at the "
-                         f"working size's pattern)")
-    if fmt != FORMAT and any(n["type"] == "pptbf" and "field" in n["params"] for n in nodes.values()):
-        raise GraphError(f"{source}: a pptbf node's 'field' needs format {FORMAT!r} (got {fmt!r})")
+    if "input_size" in doc:
+        _needs_format(fmt, "proceduralize/1.1", "'input_size'", source,
+                      f" (format {fmt!r} draws scale 1 at the working size's pattern)")
+    if any(n["type"] == "pptbf" and "field" in n["params"] for n in nodes.values()):
+        _needs_format(fmt, "proceduralize/1.2", "a pptbf node's 'field'", source)
+    if any(n["type"] == "piece_ramps" for n in nodes.values()):
+        _needs_format(fmt, "proceduralize/1.3", "a piece_ramps node", source)
     seed = doc.get("seed", 0)
     if not (isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**63):
         raise GraphError(f"{source}: seed must be an integer from 0 to 2**63-1, got {seed!r}")

@@ -1,5 +1,6 @@
 """Per-piece variation nodes: ``piece_labels`` numbers the pieces of a procedural cell mask, ``piece_offsets``
-draws one offset per piece (the between-piece spread of an instance kind, see :mod:`workers.pieces`)."""
+draws one offset per piece (the between-piece spread of an instance kind), ``piece_ramps`` tilts every piece
+about its centroid (overlapping slates), see :mod:`workers.pieces`."""
 from __future__ import annotations
 
 import numpy as np
@@ -82,3 +83,73 @@ class PieceOffsetsNode(NodeType):
                 acc = b.op("add", node_id, acc, b.op("multiply", node_id, zk, float(w)))
             out.append(acc)
         return out
+
+
+def same_key_regions(keys: np.ndarray) -> np.ndarray:
+    """HxW int: the 4-connected regions of equal value of ``keys`` (HxW), numbered from 0. A ``pptbf`` node's
+    cell keys are hashes, equal for some distant cells (at 2048x1024 px about one cell in twenty shares its key
+    with another), so a cell is a connected region of one key, not a key."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    h, w = keys.shape
+    idx = np.arange(h * w).reshape(h, w)
+    right, down = keys[:, 1:] == keys[:, :-1], keys[1:] == keys[:-1]
+    a = np.concatenate([idx[:, :-1][right], idx[:-1][down]])
+    b = np.concatenate([idx[:, 1:][right], idx[1:][down]])
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(h * w, h * w))
+    return connected_components(graph, directed=False)[1].reshape(h, w)
+
+
+def _piece_ids(inputs: dict, node_id: str) -> tuple[np.ndarray, bool]:
+    """(HxW int piece ids, whether id 0 is "no piece"): the labels of a ``piece_labels`` node, or the cells of a
+    ``pptbf`` node (:func:`same_key_regions`)."""
+    if "cells" in inputs:
+        return same_key_regions(inputs["cells"][..., 0]), False
+    if "labels" not in inputs:
+        raise GraphError(f"piece_ramps node {node_id} needs input 'labels' or 'cells'")
+    return np.rint(inputs["labels"][..., 0]).astype(np.int64), True
+
+
+@register_node
+class PieceRampsNode(NodeType):
+    """Every piece tilted about its centroid, HxWxC: ``ramp`` (C x 2) is each channel's slope along x and y per
+    working-size px (follows the scale), per piece of input ``labels`` (zero outside the pieces) or per cell of
+    input ``cells``; the distance from the centroid is clipped to ``reach`` (x, y working-size px; the input's
+    pieces' extent), so a piece larger than any the input had (cells joined by the cut) does not ramp past the
+    input's heights. A piece cut by the image's edge is tilted about the centroid of what the image shows of it."""
+
+    name = "piece_ramps"
+    inputs = ("labels", "cells")
+    params = (Param("ramp", "data", required=True, doc="C x 2 slopes (x, y) per working-size px"),
+              Param("reach", "data", doc="[x, y]: largest distance from a piece's centroid ramped (working px)"))
+
+    def check(self, params: dict) -> None:
+        a, r = (_floats(params.get(k)) for k in ("ramp", "reach"))
+        if a is None or a.ndim != 2 or a.shape[1] != 2 or not 1 <= a.shape[0] <= 4 or not np.all(np.isfinite(a)):
+            raise GraphError("piece_ramps.ramp must be a list of 1 to 4 [x, y] pairs of finite numbers")
+        if "reach" in params and (r is None or r.shape != (2,) or not np.all(np.isfinite(r)) or np.any(r <= 0)):
+            raise GraphError("piece_ramps.reach must be [x, y], two positive numbers")
+
+    def evaluate(self, params, inputs, ctx: EvalContext, node_id):
+        ramp = np.asarray(params["ramp"], np.float64)
+        lab, zero_is_gap = _piece_ids(inputs, node_id)
+        h, w = lab.shape
+        ys, xs = np.mgrid[0:h, 0:w]
+        n = np.bincount(lab.ravel()).astype(np.float64)
+        cx = np.bincount(lab.ravel(), xs.ravel()) / np.maximum(n, 1.0)
+        cy = np.bincount(lab.ravel(), ys.ravel()) / np.maximum(n, 1.0)
+        xy = np.stack([xs - cx[lab], ys - cy[lab]], axis=-1) / ctx.px_scale        # working px
+        if "reach" in params:
+            r = np.asarray(params["reach"], np.float64)
+            xy = np.clip(xy, -r, r)
+        if zero_is_gap:
+            xy[lab == 0] = 0.0
+        return (xy @ ramp.T).astype(np.float32)
+
+
+def _floats(v) -> np.ndarray | None:
+    try:
+        return np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        return None
