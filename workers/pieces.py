@@ -34,9 +34,10 @@ Overlapping slates and shingles are not level inside: each rises towards its low
 the next course. Where a kind's pieces slope the same way, the slope is fitted once for the kind about each
 piece's centroid (:func:`piece_ramp`), taken out of the residual with the means, and drawn back by a
 ``piece_ramps`` node. Without it the roof's slates came back level with a groove or a ridge on every side, their
-normals facing up and down the roof alike (skewness of the y component 0.05, the input's -2.77); with it -1.47,
-VGG-19 Gram / floor at 512 px height 1.11 -> 1.06, normal 4.76 -> 4.74 (castle normal 3.22 -> 3.03, a kind of 40
-bricks tilted the same way).
+normals facing up and down the roof alike (skewness of the y component 0.05, the input's -2.77); with it -1.54,
+and at 512 px (VGG-19 Gram / floor) render 6.09 -> 5.05, normal 4.77 -> 4.01, height 1.14 -> 1.05. The castle's
+bricks get none but one kind of 40 that slope the same way in its height (normal 2.98 -> 3.26, by
+bench/rerecompose.py 3.22 -> 3.43: the castle's one step back).
 """
 from __future__ import annotations
 
@@ -141,7 +142,9 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
     mean less the kind's mean and the background ``trend`` over it (default: :func:`piece_trend` of these pieces
     alone), divided by 1 - its own pixels' weight in the background (:meth:`Trend.own_weight`). The covariance of
     the offsets over-states the between-piece spread by the pooled within-piece covariance / piece size (a small
-    piece's mean is itself noisy); that part is subtracted, and the result clipped to be semi-definite."""
+    piece's mean is itself noisy); that part is subtracted, and the result clipped to be semi-definite. Where the
+    pieces slope the same way inside (:func:`piece_ramp`), that ramp is taken out of the residual too and kept in
+    the stats with how far the pieces reach from their centroids."""
     img = np.asarray(image, np.float32)
     img3 = as3(img)
     m = np.asarray(mask, bool) & (np.asarray(labels) > 0)
@@ -168,7 +171,7 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
     table[ids] -= kind_mean
     res = img3 - table[lab]                                       # label 0 (outside) subtracts nothing
     xy = piece_coordinates(lab, m)
-    ramp, explained = piece_ramp(dev, xy)
+    ramp, _ = piece_ramp(dev, xy)
     if ramp is not None:
         along = xy @ ramp.T
         dev = dev - along
