@@ -93,7 +93,7 @@ def same_key_regions(keys: np.ndarray) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
 
     h, w = keys.shape
-    idx = np.arange(h * w).reshape(h, w)
+    idx = np.arange(h * w, dtype=np.int32 if h * w < 2**31 else np.int64).reshape(h, w)
     right, down = keys[:, 1:] == keys[:, :-1], keys[1:] == keys[:-1]
     a = np.concatenate([idx[:, :-1][right], idx[:-1][down]])
     b = np.concatenate([idx[:, 1:][right], idx[1:][down]])
@@ -101,11 +101,14 @@ def same_key_regions(keys: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1].reshape(h, w)
 
 
-def _piece_ids(inputs: dict, node_id: str) -> tuple[np.ndarray, bool]:
+def _piece_ids(inputs: dict, ctx: EvalContext, node_id: str) -> tuple[np.ndarray, bool]:
     """(HxW int piece ids, whether id 0 is "no piece"): the labels of a ``piece_labels`` node, or the cells of a
-    ``pptbf`` node (:func:`same_key_regions`)."""
+    ``pptbf`` node (:func:`same_key_regions`, once per evaluation: every kind's ramps read the same cells)."""
     if "cells" in inputs:
-        return same_key_regions(inputs["cells"][..., 0]), False
+        key = ("same_key_regions", id(inputs["cells"]))
+        if key not in ctx.cache:
+            ctx.cache[key] = same_key_regions(inputs["cells"][..., 0])
+        return ctx.cache[key], False
     if "labels" not in inputs:
         raise GraphError(f"piece_ramps node {node_id} needs input 'labels' or 'cells'")
     return np.rint(inputs["labels"][..., 0]).astype(np.int64), True
@@ -133,7 +136,7 @@ class PieceRampsNode(NodeType):
 
     def evaluate(self, params, inputs, ctx: EvalContext, node_id):
         ramp = np.asarray(params["ramp"], np.float64)
-        lab, zero_is_gap = _piece_ids(inputs, node_id)
+        lab, zero_is_gap = _piece_ids(inputs, ctx, node_id)
         h, w = lab.shape
         ys, xs = np.mgrid[0:h, 0:w]
         n = np.bincount(lab.ravel()).astype(np.float64)
