@@ -49,7 +49,7 @@ from scipy import ndimage
 from .errors import InputError
 from .instances import nearest_labels
 from .nodes import as3
-from .nodes.pieces import psd_root
+from .nodes.pieces import piece_coordinates, psd_root
 
 MIN_PIECES = 8      # fewer pieces than this: no covariance worth estimating (offsets of zero)
 TREND_SPACINGS = 1.5  # the background's Gaussian sigma in piece spacings (sqrt(image area / pieces)): wide enough
@@ -187,19 +187,6 @@ def piece_residual(image: np.ndarray, labels: np.ndarray, mask: np.ndarray,
 #: roof_slates_02's slates rise towards their lower edge (height +0.0037 per px down the slope at 512 px, 0.074
 #: over a slate; 17 % of the variance inside the slates), where the castle's bricks lie flat (0.5 %)
 RAMP_MIN_SHARE = 0.05
-
-
-def piece_coordinates(labels: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(N, 2) x and y of the ``mask`` pixels (row-major, as ``image[mask]``) about their piece's centroid, periodic:
-    a piece that wraps around the tile's edge (the decomposition's labels join across it) is measured as one."""
-    ys, xs = np.nonzero(mask)
-    lab = np.asarray(labels)[mask].astype(np.int64)
-    out = np.empty((lab.size, 2))
-    for k, (pos, period) in enumerate(((xs, mask.shape[1]), (ys, mask.shape[0]))):
-        a = 2.0 * np.pi * pos / period
-        centre = np.arctan2(np.bincount(lab, np.sin(a)), np.bincount(lab, np.cos(a))) * period / (2.0 * np.pi)
-        out[:, k] = (pos - centre[lab] + period / 2.0) % period - period / 2.0
-    return out
 
 
 def piece_ramp(dev: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray | None, float]:

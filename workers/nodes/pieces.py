@@ -137,18 +137,31 @@ class PieceRampsNode(NodeType):
     def evaluate(self, params, inputs, ctx: EvalContext, node_id):
         ramp = np.asarray(params["ramp"], np.float64)
         lab, zero_is_gap = _piece_ids(inputs, ctx, node_id)
-        h, w = lab.shape
-        ys, xs = np.mgrid[0:h, 0:w]
-        n = np.bincount(lab.ravel()).astype(np.float64)
-        cx = np.bincount(lab.ravel(), xs.ravel()) / np.maximum(n, 1.0)
-        cy = np.bincount(lab.ravel(), ys.ravel()) / np.maximum(n, 1.0)
-        xy = np.stack([xs - cx[lab], ys - cy[lab]], axis=-1) / ctx.px_scale        # working px
+        inside = lab > 0 if zero_is_gap else np.ones(lab.shape, bool)
+        xy = np.zeros(lab.shape + (2,))
+        xy[inside] = piece_coordinates(lab, inside, periodic=False) / ctx.px_scale       # working px
         if "reach" in params:
             r = np.asarray(params["reach"], np.float64)
             xy = np.clip(xy, -r, r)
-        if zero_is_gap:
-            xy[lab == 0] = 0.0
         return (xy @ ramp.T).astype(np.float32)
+
+
+def piece_coordinates(labels: np.ndarray, mask: np.ndarray, periodic: bool = True) -> np.ndarray:
+    """(N, 2) x and y of the ``mask`` pixels (row-major, as ``image[mask]``) about their piece's centroid.
+    ``periodic``: the image is a tile and a piece that wraps around its edge (the decomposition's labels join
+    across it) is measured as one (circular means); else plain means, as for a render of any size."""
+    ys, xs = np.nonzero(mask)
+    lab = np.asarray(labels)[mask].astype(np.int64)
+    n = np.maximum(np.bincount(lab), 1)
+    out = np.empty((lab.size, 2))
+    for k, (pos, period) in enumerate(((xs, mask.shape[1]), (ys, mask.shape[0]))):
+        if not periodic:
+            out[:, k] = pos - (np.bincount(lab, pos) / n)[lab]
+            continue
+        a = 2.0 * np.pi * pos / period
+        centre = np.arctan2(np.bincount(lab, np.sin(a)), np.bincount(lab, np.cos(a))) * period / (2.0 * np.pi)
+        out[:, k] = (pos - centre[lab] + period / 2.0) % period - period / 2.0
+    return out
 
 
 def _floats(v) -> np.ndarray | None:
